@@ -1,0 +1,5 @@
+import sys
+
+from flightkit.cli.main import main
+
+sys.exit(main())

@@ -1,0 +1,415 @@
+"""TOML configuration validated into frozen dataclasses.
+
+One TOML file describes a lab set-up (vehicle link, mocap, bus, simulator, camera). It is
+read with :mod:`tomllib` and validated at load time: unknown keys, wrong types and
+out-of-range values raise :class:`~flightkit.errors.ConfigError` naming the file, the key,
+the bad value and the fix.
+
+The loader is generic: any frozen dataclass whose fields carry :func:`setting` metadata
+can be loaded with :func:`load_section`; capability packages (trajectories, capture,
+estimation) describe their own sections the same way.
+
+Example ``lab.toml``::
+
+    [vehicle]
+    namespace = "uav1"
+    autopilot = "px4"
+
+    [link]
+    url = "udpout:127.0.0.1:14540"
+    backend = "pymavlink"
+
+    [mocap]
+    source = "bus"
+    body = "uav1"
+    [mocap.T_world_mocap]
+    translation_m = [0.0, 0.0, 0.0]
+    rpy_deg = [0.0, 0.0, 90.0]
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import math
+import tomllib
+import types
+import typing
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TypeVar
+
+import numpy as np
+
+from flightkit.errors import ConfigError
+from flightkit.frames import Transform
+
+__all__ = [
+    "Autopilot",
+    "BusConfig",
+    "BusMode",
+    "CameraConfig",
+    "LabConfig",
+    "LinkBackend",
+    "LinkConfig",
+    "MocapConfig",
+    "MocapSourceKind",
+    "SimConfig",
+    "TransformConfig",
+    "VehicleConfig",
+    "load_config",
+    "load_section",
+    "load_toml",
+    "setting",
+]
+
+T = TypeVar("T")
+
+
+def setting(
+    default: Any = dataclasses.MISSING,
+    *,
+    help: str = "",
+    min: float | None = None,
+    max: float | None = None,
+    length: int | None = None,
+    default_factory: Any = dataclasses.MISSING,
+) -> Any:
+    """A dataclass field with validation metadata.
+
+    Args:
+        default: default value (omit for a required key).
+        help: one phrase shown in errors, e.g. "metres above the floor".
+        min, max: inclusive numeric range (for numbers, and for each element of a tuple).
+        length: required length for tuple values.
+        default_factory: as in :func:`dataclasses.field`.
+    """
+    meta = {"help": help, "min": min, "max": max, "length": length}
+    if default_factory is not dataclasses.MISSING:
+        return field(default_factory=default_factory, metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+class Autopilot(enum.Enum):
+    """Which autopilot firmware the vehicle runs."""
+
+    PX4 = "px4"
+    ARDUPILOT = "ardupilot"
+
+
+class LinkBackend(enum.Enum):
+    """Which library talks MAVLink for us."""
+
+    PYMAVLINK = "pymavlink"
+    MAVSDK = "mavsdk"
+
+
+class MocapSourceKind(enum.Enum):
+    """Where mocap poses come from."""
+
+    BUS = "bus"  # a Zenoh topic (the simulator publishes there, so do mocap bridges)
+    MOTIONCAPTURE = "motioncapture"  # the motioncapture library: vicon, optitrack, qualisys, vrpn, mock, ...
+
+
+class BusMode(enum.Enum):
+    """Zenoh session mode."""
+
+    PEER = "peer"
+    CLIENT = "client"
+    ROUTER = "router"
+
+
+@dataclass(frozen=True, slots=True)
+class TransformConfig:
+    """A rigid transform in config: translation plus one rotation form.
+
+    Give at most one of ``rpy_deg`` (extrinsic roll, pitch, yaw about x, y, z, degrees),
+    ``quat_wxyz`` or ``euler_deg`` with ``euler_seq`` (scipy convention, e.g. ``"xz"`` for
+    "rotate about x, then about z" in the fixed frame).
+    """
+
+    translation_m: tuple[float, ...] = setting((0.0, 0.0, 0.0), length=3, help="x, y, z in metres")
+    rpy_deg: tuple[float, ...] | None = setting(None, length=3, help="roll, pitch, yaw in degrees")
+    quat_wxyz: tuple[float, ...] | None = setting(None, length=4, help="unit quaternion w, x, y, z")
+    euler_seq: str = setting("", help="scipy Euler sequence such as 'xz' (lower case = extrinsic)")
+    euler_deg: tuple[float, ...] | None = setting(None, help="angles in degrees for euler_seq")
+
+    def to_transform(self) -> Transform:
+        t = np.asarray(self.translation_m, dtype=np.float64)
+        if self.quat_wxyz is not None:
+            return Transform.from_quat_wxyz(t, self.quat_wxyz)
+        if self.euler_deg is not None:
+            return Transform.from_xyz_euler_deg(t, self.euler_seq, self.euler_deg)
+        if self.rpy_deg is not None:
+            return Transform.from_xyz_euler_deg(t, "xyz", self.rpy_deg)
+        return Transform(translation=t)
+
+    @staticmethod
+    def _check(obj: TransformConfig, path: str, key: str) -> None:
+        given = [n for n in ("rpy_deg", "quat_wxyz", "euler_deg") if getattr(obj, n) is not None]
+        if len(given) > 1:
+            raise ConfigError(path, key, f"both {given[0]} and {given[1]} given", "give one rotation form only")
+        if obj.quat_wxyz is not None:
+            n = math.sqrt(sum(x * x for x in obj.quat_wxyz))
+            if abs(n - 1.0) > 1e-3:
+                raise ConfigError(
+                    path, f"{key}.quat_wxyz", f"norm is {n:.4f}, not 1", "give a unit quaternion", obj.quat_wxyz
+                )
+        if obj.euler_deg is not None and (not obj.euler_seq or len(obj.euler_seq) != len(obj.euler_deg)):
+            raise ConfigError(
+                path,
+                f"{key}.euler_seq",
+                f"sequence {obj.euler_seq!r} does not match {len(obj.euler_deg)} angles",
+                "give one axis letter per angle, e.g. euler_seq = 'xz' with two angles",
+                obj.euler_seq,
+            )
+
+
+@dataclass(frozen=True, slots=True)
+class VehicleConfig:
+    namespace: str = setting("uav1", help="bus namespace of this vehicle, e.g. 'uav1'")
+    autopilot: Autopilot = setting(Autopilot.PX4, help="px4 or ardupilot")
+
+
+@dataclass(frozen=True, slots=True)
+class LinkConfig:
+    url: str = setting("udpout:127.0.0.1:14540", help="MAVLink connection string")
+    backend: LinkBackend = setting(LinkBackend.PYMAVLINK, help="pymavlink or mavsdk")
+    baud: int = setting(57600, min=1200, max=4_000_000, help="serial baud rate")
+    source_system: int = setting(255, min=1, max=255, help="our MAVLink system id")
+    source_component: int = setting(191, min=1, max=255, help="our MAVLink component id (191 = onboard computer)")
+    heartbeat_timeout_s: float = setting(5.0, min=0.1, max=120.0, help="how long to wait for the autopilot")
+    command_timeout_s: float = setting(3.0, min=0.1, max=60.0, help="how long to wait for COMMAND_ACK")
+    setpoint_rate_hz: float = setting(50.0, min=2.0, max=500.0, help="setpoint stream rate")
+    setpoint_timeout_s: float = setting(0.5, min=0.05, max=10.0, help="caller silence before an explicit stop")
+    signing_key_hex: str = setting("", help="MAVLink 2 signing key: 64 hex digits (32 bytes); empty = off")
+
+
+@dataclass(frozen=True, slots=True)
+class MocapConfig:
+    source: MocapSourceKind = setting(MocapSourceKind.BUS, help="bus or motioncapture")
+    body: str = setting("uav1", help="rigid body name of the vehicle")
+    system_type: str = setting("vicon", help="motioncapture system: vicon, optitrack, qualisys, vrpn, mock, ...")
+    hostname: str = setting("", help="mocap server address for the motioncapture library")
+    options: dict[str, str] = setting(default_factory=dict, help="extra motioncapture options (strings)")
+    T_world_mocap: TransformConfig = setting(default_factory=TransformConfig, help="mocap frame in the world")
+    stale_after_s: float = setting(0.2, min=0.001, max=10.0, help="pose age that counts as stale")
+
+
+@dataclass(frozen=True, slots=True)
+class BusConfig:
+    mode: BusMode = setting(BusMode.PEER, help="peer, client or router")
+    connect: tuple[str, ...] = setting((), help="Zenoh endpoints to connect to, e.g. 'tcp/192.168.1.10:7447'")
+    listen: tuple[str, ...] = setting((), help="Zenoh endpoints to listen on")
+    well_known_port: int = setting(7447, min=1, max=65535, help="loopback port of the embedded default")
+    multicast_scouting: bool = setting(False, help="multicast discovery (off: explicit endpoints only)")
+    tls_root_ca: str = setting("", help="PEM file of the CA for tls/ endpoints")
+    tls_cert: str = setting("", help="PEM certificate for tls/ endpoints")
+    tls_key: str = setting("", help="PEM private key for tls/ endpoints")
+    zenoh_config_file: str = setting("", help="a full Zenoh JSON5 config (access control etc.) to start from")
+
+
+@dataclass(frozen=True, slots=True)
+class SimConfig:
+    speed: float = setting(1.0, min=0.01, max=1000.0, help="simulated seconds per wall second")
+    mocap_rate_hz: float = setting(120.0, min=1.0, max=1000.0, help="simulated mocap rate")
+    mocap_noise_m: float = setting(0.0, min=0.0, max=1.0, help="std-dev of mocap position noise")
+    velocity_time_constant_s: float = setting(0.25, min=0.01, max=5.0, help="velocity tracking lag")
+    max_accel_m_s2: float = setting(4.0, min=0.1, max=50.0, help="acceleration limit")
+    wind_gust_m_s: float = setting(0.0, min=0.0, max=20.0, help="peak wind gust speed")
+    T_world_mocap: TransformConfig = setting(
+        default_factory=lambda: TransformConfig(translation_m=(0.5, -0.3, 0.0), rpy_deg=(0.0, 0.0, 30.0)),
+        help="where the simulated mocap system's frame sits in the world",
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class CameraConfig:
+    """The vehicle's camera: resolution, rate, pinhole intrinsics and mounting.
+
+    Intrinsics default to a 90-degree horizontal field of view when ``fx`` is 0.
+    ``T_body_camera`` maps OpenCV camera coordinates (x right, y down, z forward) into the
+    FLU body frame; the default is the lab's own mount (135 degrees about x, then 90
+    degrees about z, both about the fixed body axes).
+    """
+
+    enabled: bool = setting(True, help="publish camera streams from the simulator")
+    width_px: int = setting(640, min=160, max=1920, help="image width in pixels")
+    height_px: int = setting(480, min=120, max=1080, help="image height in pixels")
+    rate_hz: float = setting(30.0, min=0.5, max=120.0, help="frame rate")
+    fx_px: float = setting(0.0, min=0.0, max=10000.0, help="focal length x in pixels (0 = 90 deg HFOV)")
+    fy_px: float = setting(0.0, min=0.0, max=10000.0, help="focal length y in pixels (0 = same as fx)")
+    cx_px: float = setting(-1.0, min=-1.0, max=10000.0, help="principal point x (-1 = image centre)")
+    cy_px: float = setting(-1.0, min=-1.0, max=10000.0, help="principal point y (-1 = image centre)")
+    stereo_baseline_m: float = setting(0.05, min=0.001, max=2.0, help="stereo baseline")
+    depth_max_m: float = setting(10.0, min=0.1, max=65.0, help="depth beyond this is reported invalid (0)")
+    T_body_camera: TransformConfig = setting(
+        default_factory=lambda: TransformConfig(translation_m=(0.08, 0.0, -0.02), euler_seq="xz", euler_deg=(135.0, 90.0)),
+        help="camera pose in the body frame",
+    )
+
+    def intrinsics(self) -> tuple[float, float, float, float]:
+        """(fx, fy, cx, cy) in pixels with the defaults resolved."""
+        fx = self.fx_px if self.fx_px > 0 else self.width_px / 2.0  # tan(45 deg) = 1
+        fy = self.fy_px if self.fy_px > 0 else fx
+        cx = self.cx_px if self.cx_px >= 0 else (self.width_px - 1) / 2.0
+        cy = self.cy_px if self.cy_px >= 0 else (self.height_px - 1) / 2.0
+        return fx, fy, cx, cy
+
+
+@dataclass(frozen=True, slots=True)
+class LabConfig:
+    """A whole lab set-up, as loaded from one TOML file."""
+
+    vehicle: VehicleConfig = setting(default_factory=VehicleConfig)
+    link: LinkConfig = setting(default_factory=LinkConfig)
+    mocap: MocapConfig = setting(default_factory=MocapConfig)
+    bus: BusConfig = setting(default_factory=BusConfig)
+    sim: SimConfig = setting(default_factory=SimConfig)
+    camera: CameraConfig = setting(default_factory=CameraConfig)
+    source_path: str = setting("<defaults>", help="where this config came from (set by the loader)")
+
+
+# --------------------------------------------------------------------------- loader
+
+
+def _type_name(tp: Any) -> str:
+    if isinstance(tp, type) and issubclass(tp, enum.Enum):
+        return "one of " + ", ".join(repr(m.value) for m in tp)
+    if isinstance(tp, type):
+        return {"float": "a number", "int": "an integer", "str": "a string", "bool": "true or false"}.get(
+            tp.__name__, tp.__name__
+        )
+    return str(tp)
+
+
+def _convert(value: Any, tp: Any, meta: Mapping[str, Any], path: str, key: str) -> Any:
+    origin = typing.get_origin(tp)
+    help_ = meta.get("help", "")
+    fix_hint = f" ({help_})" if help_ else ""
+
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        if value is None:
+            return None
+        return _convert(value, args[0], meta, path, key)
+
+    if dataclasses.is_dataclass(tp) and isinstance(tp, type):
+        if not isinstance(value, Mapping):
+            raise ConfigError(path, key, f"expected a table, got {value!r}", f"write it as [{key}]", value)
+        return load_section(tp, value, path=path, prefix=key)
+
+    if origin is tuple:
+        if not isinstance(value, list | tuple):
+            raise ConfigError(path, key, f"expected a list, got {value!r}", f"give a list{fix_hint}", value)
+        elem_tp = typing.get_args(tp)[0]
+        length = meta.get("length")
+        if length is not None and len(value) != length:
+            raise ConfigError(
+                path, key, f"expected {length} values, got {len(value)}", f"give exactly {length}{fix_hint}", value
+            )
+        return tuple(_convert(v, elem_tp, meta, path, f"{key}[{i}]") for i, v in enumerate(value))
+
+    if origin is dict:
+        if not isinstance(value, Mapping):
+            raise ConfigError(path, key, f"expected a table, got {value!r}", f"write it as [{key}]", value)
+        return {str(k): str(v) for k, v in value.items()}
+
+    if isinstance(tp, type) and issubclass(tp, enum.Enum):
+        for member in tp:
+            if value == member.value:
+                return member
+        raise ConfigError(path, key, f"{value!r} is not allowed", f"use {_type_name(tp)}", value)
+
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(path, key, f"expected true or false, got {value!r}", "write true or false", value)
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(path, key, f"expected an integer, got {value!r}", f"give a whole number{fix_hint}", value)
+        _check_range(value, meta, path, key)
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ConfigError(path, key, f"expected a number, got {value!r}", f"give a number{fix_hint}", value)
+        if not math.isfinite(float(value)):
+            raise ConfigError(path, key, f"{value!r} is not finite", f"give a finite number{fix_hint}", value)
+        _check_range(float(value), meta, path, key)
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(path, key, f"expected a string, got {value!r}", f'quote it: "...{fix_hint}"', value)
+        return value
+    raise TypeError(f"config type {tp!r} of {key} is not supported by the loader")
+
+
+def _check_range(value: float, meta: Mapping[str, Any], path: str, key: str) -> None:
+    lo, hi = meta.get("min"), meta.get("max")
+    if (lo is not None and value < lo) or (hi is not None and value > hi):
+        lo_s = "-inf" if lo is None else f"{lo:g}"
+        hi_s = "inf" if hi is None else f"{hi:g}"
+        help_ = meta.get("help", "")
+        raise ConfigError(
+            path, key, f"{value!r} is out of range [{lo_s}, {hi_s}]",
+            f"give a value from {lo_s} to {hi_s}" + (f" ({help_})" if help_ else ""), value,
+        )
+
+
+def load_section(cls: type[T], table: Mapping[str, Any], *, path: str = "<dict>", prefix: str = "") -> T:
+    """Validate a TOML table into the frozen dataclass ``cls``.
+
+    Raises:
+        ConfigError: on unknown keys, missing required keys, wrong types, out-of-range values.
+    """
+    if not dataclasses.is_dataclass(cls):
+        raise TypeError(f"{cls!r} is not a dataclass")
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
+    dotted = (prefix + ".") if prefix else ""
+    unknown = [k for k in table if k not in fields]
+    if unknown:
+        known = ", ".join(sorted(fields)) or "(none)"
+        raise ConfigError(
+            path, dotted + unknown[0], "unknown key", f"remove it or use one of: {known}", table[unknown[0]]
+        )
+    kwargs: dict[str, Any] = {}
+    for name, f in fields.items():
+        key = dotted + name
+        if name in table:
+            kwargs[name] = _convert(table[name], hints[name], f.metadata, path, key)
+        elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+            raise ConfigError(path, key, "missing required key", f"add {name} = ... ({f.metadata.get('help', '')})")
+    obj = cls(**kwargs)
+    check = getattr(cls, "_check", None)
+    if callable(check):
+        check(obj, path, prefix)
+    return obj
+
+
+def load_toml(path: str | Path) -> dict[str, Any]:
+    """Read a TOML file, turning IO and syntax errors into ConfigError."""
+    p = Path(path)
+    try:
+        with p.open("rb") as fh:
+            return tomllib.load(fh)
+    except FileNotFoundError:
+        raise ConfigError(str(p), "(file)", "file not found", "check the path") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(str(p), "(syntax)", f"invalid TOML: {exc}", "fix the TOML syntax") from exc
+    except OSError as exc:
+        raise ConfigError(str(p), "(file)", f"cannot read: {exc.strerror}", "check permissions") from exc
+
+
+def load_config(path: str | Path | None = None, table: Mapping[str, Any] | None = None) -> LabConfig:
+    """Load a lab config from a TOML file (or an in-memory table); no argument gives defaults."""
+    if path is not None:
+        data = load_toml(path)
+        src = str(path)
+    else:
+        data = dict(table or {})
+        src = "<dict>"
+    data = {k: v for k, v in data.items() if k != "source_path"}
+    cfg = load_section(LabConfig, data, path=src)
+    return dataclasses.replace(cfg, source_path=src)

@@ -1,0 +1,164 @@
+"""The one exception tree of flightkit.
+
+::
+
+    FlightkitError
+    ├── ConfigError            bad TOML: names file, key, value and the fix
+    ├── LinkError              anything between us and the autopilot
+    │   ├── EndpointError      a connection string we cannot open (bad syntax, port in use)
+    │   ├── LinkTimeout        nothing answered in time (heartbeat, COMMAND_ACK, state change)
+    │   └── CommandRejected    the autopilot answered "no" (carries its reason and STATUSTEXT)
+    ├── SetpointError          a setpoint that is out of range or malformed
+    ├── MocapError             mocap source failures
+    │   └── MocapBodyMissing   the rigid body is not visible (carries the bodies that are)
+    ├── BusError               Zenoh session or encoding problems
+    ├── CaptureError           recording, recovery, export
+    ├── DatasetError           an unreadable or incomplete dataset folder / recording
+    ├── EstimationError        visual odometry and evaluation
+    ├── SafetyAbort            the supervisor ended a flight (carries the fault)
+    └── ProtocolError          the serial/BLE pose-reporting protocol
+
+Every message says what is wrong, the value involved and what to do about it. Context is
+kept in public attributes so callers can react without parsing text.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "BusError",
+    "CaptureError",
+    "CommandRejected",
+    "ConfigError",
+    "DatasetError",
+    "EndpointError",
+    "EstimationError",
+    "FlightkitError",
+    "LinkError",
+    "LinkTimeout",
+    "MocapBodyMissing",
+    "MocapError",
+    "ProtocolError",
+    "SafetyAbort",
+    "SetpointError",
+]
+
+
+class FlightkitError(Exception):
+    """Base class of every error flightkit raises on purpose."""
+
+
+class ConfigError(FlightkitError):
+    """A configuration value is missing, unknown, of the wrong type or out of range.
+
+    Attributes:
+        path: the file (or "<dict>" for in-memory config).
+        key: dotted key, e.g. ``"link.url"``.
+        value: the offending value (None when missing).
+        fix: what the user should do.
+    """
+
+    def __init__(self, path: str, key: str, problem: str, fix: str, value: object = None) -> None:
+        self.path = path
+        self.key = key
+        self.value = value
+        self.problem = problem
+        self.fix = fix
+        super().__init__(f"{path}: {key}: {problem}; {fix}")
+
+
+class LinkError(FlightkitError):
+    """Communication with the autopilot failed."""
+
+
+class EndpointError(LinkError):
+    """A connection string is malformed or cannot be opened (e.g. the port is in use)."""
+
+
+class LinkTimeout(LinkError):
+    """Nothing (or not the expected answer) arrived before a timeout.
+
+    Attributes:
+        what: what we waited for, e.g. ``"HEARTBEAT"``.
+        timeout_s: how long we waited.
+    """
+
+    def __init__(self, message: str, what: str = "", timeout_s: float = 0.0) -> None:
+        self.what = what
+        self.timeout_s = timeout_s
+        super().__init__(message)
+
+
+class CommandRejected(LinkError):
+    """The autopilot refused a command.
+
+    Attributes:
+        command: the MAVLink command or operation name, e.g. ``"MAV_CMD_COMPONENT_ARM_DISARM"``.
+        result: the autopilot's result name, e.g. ``"TEMPORARILY_REJECTED"``.
+        statustext: the STATUSTEXT lines the autopilot sent around the refusal (may be empty).
+    """
+
+    def __init__(self, command: str, result: str, statustext: tuple[str, ...] = (), hint: str = "") -> None:
+        self.command = command
+        self.result = result
+        self.statustext = statustext
+        reason = f" ({'; '.join(statustext)})" if statustext else ""
+        tail = f"; {hint}" if hint else ""
+        super().__init__(f"autopilot refused {command}: {result}{reason}{tail}")
+
+
+class SetpointError(FlightkitError):
+    """A setpoint is malformed or outside the configured limits."""
+
+
+class MocapError(FlightkitError):
+    """The motion-capture source failed."""
+
+
+class MocapBodyMissing(MocapError):
+    """The requested rigid body is not in the mocap stream.
+
+    Attributes:
+        body: the requested body name.
+        visible: the body names that are visible.
+    """
+
+    def __init__(self, body: str, visible: tuple[str, ...]) -> None:
+        self.body = body
+        self.visible = visible
+        seen = ", ".join(visible) if visible else "none"
+        super().__init__(
+            f"mocap body {body!r} is not visible (visible bodies: {seen}); "
+            "check the body name in the config and that the markers are tracked"
+        )
+
+
+class BusError(FlightkitError):
+    """The message bus (Zenoh) failed or a message could not be encoded/decoded."""
+
+
+class CaptureError(FlightkitError):
+    """Recording, recovery or export failed."""
+
+
+class DatasetError(FlightkitError):
+    """A dataset folder or recording cannot be read (unknown layout, missing files)."""
+
+
+class EstimationError(FlightkitError):
+    """Visual odometry or its evaluation failed."""
+
+
+class SafetyAbort(FlightkitError):
+    """The safety supervisor ended a flight.
+
+    Attributes:
+        reason: short machine-readable fault name, e.g. ``"mocap_stale"``.
+    """
+
+    def __init__(self, reason: str, message: str) -> None:
+        self.reason = reason
+        super().__init__(message)
+
+
+class ProtocolError(FlightkitError):
+    """The pose-reporting protocol failed (bad frame, handshake failure, link lost)."""

@@ -1,0 +1,311 @@
+"""The vehicle link interface: what flight code may ask of an autopilot.
+
+Everything above ``flightkit/link/`` speaks in the world frame (ENU, z up) and the body
+frame (FLU); the backends translate to MAVLink's NED/FRD at the wire. Two backends
+implement :class:`VehicleLink`: :class:`~flightkit.link.mavlink.MavlinkLink` (pymavlink)
+and :class:`~flightkit.link.mavsdk_link.MavsdkLink` (MAVSDK), and config alone picks one.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass, field
+from types import TracebackType
+from typing import Protocol, Self, runtime_checkable
+
+import numpy as np
+import numpy.typing as npt
+
+from flightkit.config import Autopilot
+from flightkit.errors import SetpointError
+from flightkit.frames import Transform
+
+__all__ = [
+    "BatteryState",
+    "ExternalPose",
+    "ExternalPoseKind",
+    "FlightMode",
+    "LandedState",
+    "SetpointFrame",
+    "Telemetry",
+    "VehicleInfo",
+    "VehicleLink",
+    "VelocitySetpoint",
+    "offboard_mode_for",
+]
+
+
+class FlightMode(enum.Enum):
+    """Flight modes across autopilots. Each backend maps these to its firmware's custom modes.
+
+    ``OFFBOARD`` (PX4) and ``GUIDED`` (ArduPilot) are the modes in which the vehicle follows
+    our setpoints; :func:`offboard_mode_for` picks the right one.
+    """
+
+    MANUAL = "MANUAL"
+    STABILIZED = "STABILIZED"
+    ALTCTL = "ALTCTL"
+    POSCTL = "POSCTL"
+    OFFBOARD = "OFFBOARD"
+    HOLD = "HOLD"  # PX4 AUTO.LOITER
+    TAKEOFF = "TAKEOFF"
+    LAND = "LAND"
+    RTL = "RTL"
+    GUIDED = "GUIDED"
+    LOITER = "LOITER"
+    BRAKE = "BRAKE"
+    UNKNOWN = "UNKNOWN"
+
+
+def offboard_mode_for(autopilot: Autopilot) -> FlightMode:
+    """The mode in which ``autopilot`` follows external setpoints."""
+    return FlightMode.OFFBOARD if autopilot is Autopilot.PX4 else FlightMode.GUIDED
+
+
+class LandedState(enum.Enum):
+    """MAV_LANDED_STATE, as reported in EXTENDED_SYS_STATE."""
+
+    UNDEFINED = 0
+    ON_GROUND = 1
+    IN_AIR = 2
+    TAKEOFF = 3
+    LANDING = 4
+
+
+class SetpointFrame(enum.Enum):
+    """Frame of a velocity setpoint as given to :meth:`VehicleLink.set_velocity`.
+
+    ``WORLD``: the autopilot's local frame expressed ENU (sent as MAV_FRAME_LOCAL_NED);
+    right when the autopilot fuses mocap and its local frame matches the world.
+    ``BODY``: yaw-aligned body frame, FLU (sent as MAV_FRAME_BODY_NED, relative to the
+    vehicle's current heading); right when the autopilot's heading is not the lab's.
+    """
+
+    WORLD = "world"
+    BODY = "body"
+
+
+class ExternalPoseKind(enum.Enum):
+    """MAVLink message used for external pose (PX4 EKF2 ignores ATT_POS_MOCAP)."""
+
+    VISION_POSITION_ESTIMATE = "vision_position_estimate"
+    ODOMETRY = "odometry"
+
+
+@dataclass(frozen=True, slots=True)
+class VelocitySetpoint:
+    """A velocity command with a yaw or yaw-rate target.
+
+    Attributes:
+        vel_m_s: (x, y, z) velocity in ``frame`` (ENU for WORLD, FLU for BODY), m/s.
+        frame: see :class:`SetpointFrame`.
+        yaw_rad: absolute heading, world ENU (counter-clockwise from x); None = not commanded.
+        yaw_rate_rad_s: yaw rate, positive counter-clockwise (seen from above); None = not
+            commanded. Give at most one of ``yaw_rad`` and ``yaw_rate_rad_s``; giving neither
+            holds the current heading (yaw rate 0).
+    """
+
+    vel_m_s: tuple[float, float, float]
+    frame: SetpointFrame = SetpointFrame.WORLD
+    yaw_rad: float | None = None
+    yaw_rate_rad_s: float | None = None
+
+    def __post_init__(self) -> None:
+        v = tuple(float(x) for x in self.vel_m_s)
+        if len(v) != 3 or not all(math.isfinite(x) for x in v):
+            raise SetpointError(f"velocity setpoint must be 3 finite numbers, got {self.vel_m_s!r}")
+        object.__setattr__(self, "vel_m_s", v)
+        if self.yaw_rad is not None and self.yaw_rate_rad_s is not None:
+            raise SetpointError("give yaw_rad or yaw_rate_rad_s, not both")
+        for name in ("yaw_rad", "yaw_rate_rad_s"):
+            val = getattr(self, name)
+            if val is not None and not math.isfinite(val):
+                raise SetpointError(f"{name} must be finite, got {val!r}")
+
+    @staticmethod
+    def zero(frame: SetpointFrame = SetpointFrame.WORLD) -> VelocitySetpoint:
+        """Stop: zero velocity, zero yaw rate."""
+        return VelocitySetpoint((0.0, 0.0, 0.0), frame, yaw_rate_rad_s=0.0)
+
+    def check_limits(self, max_horizontal_m_s: float, max_vertical_m_s: float, max_yaw_rate_rad_s: float) -> None:
+        """Raise SetpointError if this setpoint exceeds the given limits."""
+        vh = math.hypot(self.vel_m_s[0], self.vel_m_s[1])
+        if vh > max_horizontal_m_s + 1e-9:
+            raise SetpointError(
+                f"horizontal speed {vh:.3f} m/s exceeds the limit {max_horizontal_m_s:.3f} m/s; "
+                "slow the command or raise the limit in config"
+            )
+        if abs(self.vel_m_s[2]) > max_vertical_m_s + 1e-9:
+            raise SetpointError(
+                f"vertical speed {self.vel_m_s[2]:.3f} m/s exceeds the limit {max_vertical_m_s:.3f} m/s; "
+                "slow the command or raise the limit in config"
+            )
+        if self.yaw_rate_rad_s is not None and abs(self.yaw_rate_rad_s) > max_yaw_rate_rad_s + 1e-9:
+            raise SetpointError(
+                f"yaw rate {self.yaw_rate_rad_s:.3f} rad/s exceeds the limit {max_yaw_rate_rad_s:.3f} rad/s"
+            )
+
+
+@dataclass(frozen=True, slots=True)
+class ExternalPose:
+    """A pose from mocap or VO for the autopilot's estimator.
+
+    Attributes:
+        stamp_ns: when the pose was valid (the estimator's or mocap's timestamp), ns since epoch.
+        T_world_body: body (FLU) pose in the world (ENU) frame.
+        pos_std_m: position standard deviation (isotropic), for the covariance.
+        rot_std_rad: attitude standard deviation (isotropic), for the covariance.
+        vel_world_m_s: optional velocity in the world frame (sent with ODOMETRY).
+        quality_pct: 0-100 quality (ODOMETRY), -1 = unknown.
+        reset_counter: bump when the estimator's frame jumps (re-initialisation).
+    """
+
+    stamp_ns: int
+    T_world_body: Transform
+    pos_std_m: float = 0.01
+    rot_std_rad: float = 0.02
+    vel_world_m_s: tuple[float, float, float] | None = None
+    quality_pct: int = -1
+    reset_counter: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class BatteryState:
+    voltage_v: float = math.nan
+    remaining_pct: float = math.nan  # 0-100; NaN when the autopilot does not estimate it
+
+
+@dataclass(frozen=True, slots=True)
+class VehicleInfo:
+    """What the autopilot's heartbeat and AUTOPILOT_VERSION say about it."""
+
+    system_id: int
+    component_id: int
+    autopilot: Autopilot
+    vehicle_type: int  # MAV_TYPE
+    firmware_version: str = ""
+
+
+@dataclass(frozen=True, slots=True)
+class Telemetry:
+    """A snapshot of the vehicle state, in flightkit frames.
+
+    Attributes:
+        stamp_s: clock time (``Clock.monotonic_s``) of the newest message in the snapshot.
+        pos_local_enu_m: position in the autopilot's local frame, expressed ENU.
+        vel_local_enu_m_s: velocity in the autopilot's local frame, expressed ENU.
+        R_local_body_quat_wxyz: attitude of the FLU body in the local ENU frame.
+        yaw_local_rad: heading in the local ENU frame (counter-clockwise from x).
+        heartbeat_age_s: clock seconds since the last autopilot HEARTBEAT (inf if none yet).
+    """
+
+    stamp_s: float = 0.0
+    armed: bool = False
+    mode: FlightMode = FlightMode.UNKNOWN
+    custom_mode: int = 0
+    landed_state: LandedState = LandedState.UNDEFINED
+    pos_local_enu_m: tuple[float, float, float] = (math.nan, math.nan, math.nan)
+    vel_local_enu_m_s: tuple[float, float, float] = (math.nan, math.nan, math.nan)
+    R_local_body_quat_wxyz: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
+    yaw_local_rad: float = math.nan
+    battery: BatteryState = field(default_factory=BatteryState)
+    heartbeat_age_s: float = math.inf
+
+    @property
+    def pos_array(self) -> npt.NDArray[np.float64]:
+        return np.asarray(self.pos_local_enu_m, dtype=np.float64)
+
+
+@runtime_checkable
+class VehicleLink(Protocol):
+    """A connection to one autopilot.
+
+    Use as an async context manager (``async with link:``): entering connects and waits for
+    the heartbeat; leaving stops any setpoint stream and closes the connection. Methods
+    that talk to the autopilot block (await) until it acknowledges, or raise
+    :class:`~flightkit.errors.LinkTimeout` / :class:`~flightkit.errors.CommandRejected`.
+    """
+
+    @property
+    def info(self) -> VehicleInfo:
+        """The connected autopilot (raises LinkError before connect)."""
+        ...
+
+    @property
+    def telemetry(self) -> Telemetry:
+        """Latest state; returns immediately."""
+        ...
+
+    @property
+    def statustext(self) -> tuple[str, ...]:
+        """Recent STATUSTEXT lines from the autopilot, oldest first."""
+        ...
+
+    async def connect(self) -> VehicleInfo:
+        """Open the connection and wait for the autopilot's heartbeat (LinkTimeout otherwise)."""
+        ...
+
+    async def close(self) -> None:
+        """Stop the setpoint stream and close the connection; idempotent."""
+        ...
+
+    async def arm(self) -> None:
+        """Arm; returns when the heartbeat shows armed. CommandRejected carries the reason."""
+        ...
+
+    async def disarm(self, force: bool = False) -> None:
+        """Disarm; returns when the heartbeat shows disarmed."""
+        ...
+
+    async def set_mode(self, mode: FlightMode) -> None:
+        """Switch flight mode; returns when the heartbeat shows it.
+
+        For OFFBOARD the setpoint stream must already be running (see
+        :meth:`start_setpoint_stream`), as PX4 requires.
+        """
+        ...
+
+    async def takeoff(self, altitude_m: float) -> None:
+        """Command a take-off to ``altitude_m`` above home; returns when acknowledged."""
+        ...
+
+    async def land(self) -> None:
+        """Command a landing at the current position; returns when acknowledged."""
+        ...
+
+    async def start_setpoint_stream(self, rate_hz: float | None = None) -> None:
+        """Start streaming the current setpoint (initially zero velocity) in the background.
+
+        If the caller does not call :meth:`set_velocity` for ``setpoint_timeout_s`` the
+        stream sends an explicit stop (zero velocity) instead of repeating a stale command.
+        """
+        ...
+
+    async def stop_setpoint_stream(self) -> None:
+        """Stop streaming (sends one last zero-velocity setpoint); idempotent."""
+        ...
+
+    def set_velocity(self, setpoint: VelocitySetpoint) -> None:
+        """Replace the streamed setpoint; returns immediately. The stream must be running."""
+        ...
+
+    async def send_vision_pose(
+        self, pose: ExternalPose, kind: ExternalPoseKind = ExternalPoseKind.VISION_POSITION_ESTIMATE
+    ) -> None:
+        """Send an external pose to the autopilot's estimator; returns once sent."""
+        ...
+
+    async def set_ekf_origin(self, lat_deg: float, lon_deg: float, alt_m: float) -> None:
+        """Set the EKF origin (SET_GPS_GLOBAL_ORIGIN) for a vehicle without GPS."""
+        ...
+
+    async def wait_for(self, predicate: object, timeout_s: float, what: str) -> Telemetry:
+        """Wait until ``predicate(telemetry)`` is true; LinkTimeout naming ``what`` otherwise."""
+        ...
+
+    async def __aenter__(self) -> Self: ...
+
+    async def __aexit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None: ...

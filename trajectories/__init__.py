@@ -1,0 +1,1 @@
+"""trajectories: part of flightkit."""
