@@ -159,3 +159,31 @@ def test_sigkill_then_recover(tmp_path: Path) -> None:
     assert texts == [f"msg {i}" + "x" * 200 for i in range(report.messages)]
     with pytest.raises(CaptureError, match="exists"):
         recover(crashed, tmp_path / "fixed.mcap")
+
+
+def test_capture_info_and_recover_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import json
+
+    from flightkit.cli.main import main
+
+    out = tmp_path / "run.mcap"
+    rec = Recorder(out, schema_for)
+    for i in range(100):
+        if i not in range(40, 50):  # a 10-message silence and 10 missed sequence numbers
+            rec.offer(sample(i))
+    rec.close()
+    assert main(["capture", "info", str(out), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    (stream,) = info["streams"]
+    assert stream["topic"] == "/uav1/test/chatter" and stream["count"] == 90
+    assert stream["missed_seq"] == 10 and stream["gaps"] == 1
+    assert stream["rate_hz"] == pytest.approx(89 / 99e-6)  # 90 stamps over 99 us
+    assert main(["capture", "info", str(out)]) == 0
+    assert "/uav1/test/chatter" in capsys.readouterr().out
+    # a bad file gives one line and exit code 1
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(b"not an mcap file")
+    assert main(["capture", "info", str(bad)]) == 1
+    assert "capture recover" in capsys.readouterr().err
+    assert main(["capture", "recover", str(out), "-o", str(tmp_path / "fixed.mcap")]) == 0
+    assert "already complete" in capsys.readouterr().out
