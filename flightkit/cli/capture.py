@@ -71,7 +71,8 @@ def run_info(args: argparse.Namespace) -> int:
     )
     table = Table()
     for col in ("topic", "type", "count", "rate Hz", "MB", "start", "end", "max gap s", "gaps", "missed"):
-        table.add_column(col, justify="left" if col in ("topic", "type") else "right")
+        text_col = col in ("topic", "type")
+        table.add_column(col, justify="left" if text_col else "right", overflow="fold", no_wrap=not text_col)
     for s in info.streams:
         table.add_row(
             s.topic, s.msgtype, str(s.count), f"{s.rate_hz:.1f}", f"{s.bytes / 1e6:.2f}",
