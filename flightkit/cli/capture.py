@@ -65,18 +65,22 @@ def run_info(args: argparse.Namespace) -> int:
         )
         return 0
     console = Console()
+    if not console.is_terminal:
+        console = Console(width=160)
     console.print(
         f"[bold]{info.path}[/]  {info.size_bytes / 1e6:.1f} MB, profile {info.profile or '-'}, "
         f"{info.messages} messages, {info.duration_s:.2f} s"
     )
-    table = Table()
-    for col in ("topic", "type", "count", "rate Hz", "MB", "start", "end", "max gap s", "gaps", "missed"):
+    t0 = info.start_ns
+    table = Table(caption=f"times relative to the first message at {_iso(t0)} UTC")
+    for col in ("topic", "type", "count", "rate Hz", "MB", "start s", "end s", "max gap s", "gaps", "missed"):
         text_col = col in ("topic", "type")
         table.add_column(col, justify="left" if text_col else "right", overflow="fold", no_wrap=not text_col)
     for s in info.streams:
         table.add_row(
             s.topic, s.msgtype, str(s.count), f"{s.rate_hz:.1f}", f"{s.bytes / 1e6:.2f}",
-            _iso(s.first_ns), _iso(s.last_ns), f"{s.max_gap_s:.3f}", str(len(s.gaps)), str(s.missed_seq),
+            f"{(s.first_ns - t0) / 1e9:.3f}", f"{(s.last_ns - t0) / 1e9:.3f}", f"{s.max_gap_s:.3f}",
+            str(len(s.gaps)), str(s.missed_seq),
         )
     console.print(table)
     if info.metadata:
