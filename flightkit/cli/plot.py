@@ -1,0 +1,30 @@
+"""``flightkit plot LOG``: PNG plots of a flight log (top view, tracking error against time)."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+__all__ = ["register", "run"]
+
+
+def register(subparsers: Any) -> None:
+    p = subparsers.add_parser("plot", help="plot a flight log (top view and tracking error, PNG)")
+    p.add_argument("log", help="flight log CSV written by 'flightkit fly'")
+    p.add_argument("--out", default=None, help="folder for the PNG files (default: next to the log)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from flightkit.errors import ConfigError
+    from trajectories.plots import plot_flight_log
+
+    try:
+        paths = plot_flight_log(args.log, args.out)
+    except FileNotFoundError:
+        raise ConfigError(args.log, "(file)", "file not found", "give the path of a flight log") from None
+    except ValueError as exc:
+        raise ConfigError(args.log, "(file)", str(exc), "give a log written by 'flightkit fly'") from None
+    for p in paths:
+        print(p)
+    return 0

@@ -1,0 +1,254 @@
+"""Flight logs and summaries.
+
+A flight log is a CSV file with one row per control cycle: time, phase, lap, the reference,
+the mocap pose, the setpoint sent and the supervisor's action. Metadata (plan, vehicle,
+controller) is a JSON comment on the first line and each fault a ``# fault {...}`` comment
+line, so the file opens in any spreadsheet or ``numpy.genfromtxt(comments="#")`` and is read
+back with :func:`read_flight_log`.
+
+:class:`FlightSummary` is what a flight returns: per-phase RMS and max tracking error,
+duration, loop rate and faults; ``to_dict()`` gives the JSON summary.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+import numpy.typing as npt
+
+from trajectories.supervisor import Fault
+
+__all__ = ["COLUMNS", "FlightLog", "FlightLogData", "FlightSummary", "PhaseStats", "read_flight_log"]
+
+COLUMNS = (
+    "t_s", "stamp_ns", "phase", "lap", "action",
+    "ref_x_m", "ref_y_m", "ref_z_m", "ref_yaw_rad", "ref_vx_m_s", "ref_vy_m_s", "ref_vz_m_s",
+    "pos_x_m", "pos_y_m", "pos_z_m", "yaw_rad", "mocap_age_s",
+    "sp_frame", "sp_vx_m_s", "sp_vy_m_s", "sp_vz_m_s", "sp_yaw_rad", "sp_yaw_rate_rad_s",
+    "err_m", "cycle_s",
+)  # fmt: skip
+_MAGIC = "# flightkit flight log v1 "
+
+
+@dataclass(slots=True)
+class PhaseStats:
+    """Tracking statistics of one phase (accumulated online).
+
+    Attributes:
+        name: phase name ("takeoff", "hold", "pattern", ...).
+        duration_s: time spent in the phase.
+        samples: control cycles with a valid tracking error.
+        rms_error_m / max_error_m: 3-D position error against the reference.
+    """
+
+    name: str
+    duration_s: float = 0.0
+    samples: int = 0
+    sum_sq_m2: float = 0.0
+    max_error_m: float = 0.0
+
+    @property
+    def rms_error_m(self) -> float:
+        return math.sqrt(self.sum_sq_m2 / self.samples) if self.samples else math.nan
+
+    def add(self, err_m: float) -> None:
+        self.samples += 1
+        self.sum_sq_m2 += err_m * err_m
+        if err_m > self.max_error_m:
+            self.max_error_m = err_m
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"name": self.name, "duration_s": round(self.duration_s, 3), "samples": self.samples,
+                "rms_error_m": _r(self.rms_error_m), "max_error_m": _r(self.max_error_m)}
+
+
+def _r(x: float, nd: int = 4) -> float | None:
+    return None if math.isnan(x) else round(x, nd)
+
+
+@dataclass(slots=True)
+class FlightSummary:
+    """The end-of-flight summary.
+
+    Attributes:
+        plan: plan name.
+        outcome: "completed", "landed_early" (a fault ended the pattern but we landed),
+            "autopilot_landing" (handed to the autopilot's LAND), "released" (the pilot took
+            over), "stopped" (link lost) or "failed" (an error before take-off).
+        duration_s: flight time from the first command to the end.
+        phases: statistics per phase, in flight order (repeated phases are merged by name).
+        faults: every fault, in order of detection.
+        laps_completed: laps of the pattern flown to the end.
+        loop_rate_hz: mean control rate; cycle_p50_ms / cycle_p99_ms: compute time per cycle.
+        log_path: the flight log file (None when not logging).
+    """
+
+    plan: str
+    outcome: str = "completed"
+    duration_s: float = 0.0
+    phases: list[PhaseStats] = field(default_factory=list)
+    faults: list[Fault] = field(default_factory=list)
+    laps_completed: int = 0
+    loop_rate_hz: float = math.nan
+    cycle_p50_ms: float = math.nan
+    cycle_p99_ms: float = math.nan
+    log_path: str | None = None
+
+    def phase(self, name: str) -> PhaseStats:
+        """The stats of phase ``name`` (KeyError if it was not flown)."""
+        for p in self.phases:
+            if p.name == name:
+                return p
+        raise KeyError(f"phase {name!r} was not flown (phases: {', '.join(p.name for p in self.phases)})")
+
+    @property
+    def ok(self) -> bool:
+        return self.outcome == "completed" and not self.faults
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "plan": self.plan, "outcome": self.outcome, "duration_s": round(self.duration_s, 3),
+            "laps_completed": self.laps_completed, "loop_rate_hz": _r(self.loop_rate_hz, 1),
+            "cycle_p50_ms": _r(self.cycle_p50_ms, 4), "cycle_p99_ms": _r(self.cycle_p99_ms, 4),
+            "phases": [p.to_dict() for p in self.phases], "faults": [f.to_dict() for f in self.faults],
+            "log_path": self.log_path,
+        }
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=2)
+
+    def format_table(self) -> str:
+        """A plain-text table for terminals."""
+        lines = [f"flight {self.plan!r}: {self.outcome}, {self.duration_s:.1f} s, "
+                 f"{self.laps_completed} lap(s), loop {self.loop_rate_hz:.0f} Hz "
+                 f"(cycle p50 {self.cycle_p50_ms:.3f} ms, p99 {self.cycle_p99_ms:.3f} ms)"]
+        lines.append(f"  {'phase':<10} {'time s':>8} {'RMS err m':>10} {'max err m':>10}")
+        for p in self.phases:
+            lines.append(f"  {p.name:<10} {p.duration_s:>8.1f} {p.rms_error_m:>10.4f} {p.max_error_m:>10.4f}")
+        if self.faults:
+            lines.append("  faults:")
+            lines.extend(f"    t={f.time_s:7.2f} s  {f.kind.value:<18} {f.message}" for f in self.faults)
+        else:
+            lines.append("  faults: none")
+        if self.log_path:
+            lines.append(f"  log: {self.log_path}")
+        return "\n".join(lines)
+
+
+class FlightLog:
+    """Writes the per-cycle CSV log. Rows are buffered in memory and flushed every second of rows.
+
+    Args:
+        path: file to create (its folder is created); refuses to overwrite an existing file.
+        meta: JSON-serialisable metadata written on the first line.
+    """
+
+    def __init__(self, path: str | Path, meta: dict[str, Any] | None = None, flush_every: int = 200) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._fh: TextIO = self.path.open("x", encoding="utf-8", newline="")
+        self._fh.write(_MAGIC + json.dumps(meta or {}) + "\n")
+        self._fh.write(",".join(COLUMNS) + "\n")
+        self._buf = io.StringIO()
+        self._rows = 0
+        self._flush_every = flush_every
+
+    def row(self, values: tuple[Any, ...]) -> None:
+        """Append one row (values in :data:`COLUMNS` order); returns immediately."""
+        self._buf.write(",".join(_fmt(v) for v in values))
+        self._buf.write("\n")
+        self._rows += 1
+        if self._rows % self._flush_every == 0:
+            self.flush()
+
+    def fault(self, fault: Fault) -> None:
+        self._buf.write("# fault " + json.dumps(fault.to_dict()) + "\n")
+
+    def flush(self) -> None:
+        if self._fh.closed:
+            return
+        self._fh.write(self._buf.getvalue())
+        self._buf = io.StringIO()
+        self._fh.flush()
+
+    def close(self, summary: FlightSummary | None = None) -> None:
+        if self._fh.closed:
+            return
+        if summary is not None:
+            self._buf.write("# summary " + json.dumps(summary.to_dict()) + "\n")
+        self.flush()
+        self._fh.close()
+
+    @property
+    def rows(self) -> int:
+        return self._rows
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, float):
+        return "nan" if math.isnan(v) else f"{v:.6g}" if abs(v) >= 1e4 else f"{v:.6f}"
+    return str(v)
+
+
+@dataclass(frozen=True, slots=True)
+class FlightLogData:
+    """A flight log read back.
+
+    Attributes:
+        meta: the metadata line.
+        columns: numeric columns by name (shape (N,)); ``phase``, ``action`` and ``sp_frame`` are strings.
+        faults: fault records (dicts as written).
+        summary: the summary written at the end (empty if the flight did not finish cleanly).
+    """
+
+    meta: dict[str, Any]
+    columns: dict[str, npt.NDArray[Any]]
+    faults: list[dict[str, Any]]
+    summary: dict[str, Any]
+
+    def __getitem__(self, name: str) -> npt.NDArray[Any]:
+        return self.columns[name]
+
+    def __len__(self) -> int:
+        return len(self.columns["t_s"])
+
+
+_STR_COLS = {"phase", "action", "sp_frame"}
+
+
+def read_flight_log(path: str | Path) -> FlightLogData:
+    """Read a flight log written by :class:`FlightLog`.
+
+    Raises:
+        FileNotFoundError: no such file. ValueError: not a flightkit flight log.
+    """
+    meta: dict[str, Any] = {}
+    faults: list[dict[str, Any]] = []
+    summary: dict[str, Any] = {}
+    rows: list[list[str]] = []
+    header: list[str] = []
+    with Path(path).open(encoding="utf-8") as fh:
+        first = fh.readline()
+        if not first.startswith(_MAGIC):
+            raise ValueError(f"{path} is not a flightkit flight log (first line {first[:40]!r})")
+        meta = json.loads(first[len(_MAGIC):])
+        for line in fh:
+            if line.startswith("# fault "):
+                faults.append(json.loads(line[8:]))
+            elif line.startswith("# summary "):
+                summary = json.loads(line[10:])
+            elif not header:
+                header = line.rstrip("\n").split(",")
+            elif line.strip():
+                rows.append(line.rstrip("\n").split(","))
+    cols: dict[str, npt.NDArray[Any]] = {}
+    for i, name in enumerate(header):
+        vals = [r[i] for r in rows]
+        cols[name] = np.array(vals, dtype=object if name in _STR_COLS else np.float64)
+    return FlightLogData(meta, cols, faults, summary)

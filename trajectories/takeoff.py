@@ -1,0 +1,46 @@
+"""Take-off and landing references: vertical moves at a climb / descent rate."""
+
+from __future__ import annotations
+
+from trajectories.base import Move, PiecewisePattern, Vec3
+
+__all__ = ["Land", "Takeoff"]
+
+
+class Takeoff(PiecewisePattern):
+    """Climb vertically from ``start_m`` to ``height_m`` at ``climb_m_s`` (ramped within ``accel_m_s2``)."""
+
+    def __init__(
+        self, start_m: Vec3, height_m: float, climb_m_s: float = 0.3, accel_m_s2: float = 0.5, yaw_rad: float = 0.0
+    ) -> None:
+        if not climb_m_s > 0.0:
+            raise ValueError(f"takeoff: climb rate must be positive, got {climb_m_s} m/s")
+        top = (float(start_m[0]), float(start_m[1]), float(height_m))
+        start = (float(start_m[0]), float(start_m[1]), float(start_m[2]))
+        if top[2] <= start[2]:
+            raise ValueError(f"takeoff: target height {height_m} m is not above the start height {start[2]:.2f} m")
+        self.height_m = float(height_m)
+        super().__init__("takeoff", [Move(start, top, climb_m_s, accel_m_s2, float(yaw_rad))], 1)
+
+
+class Land(PiecewisePattern):
+    """Descend vertically from ``start_m`` at ``descent_m_s`` down to ``floor_m - push_m``.
+
+    The reference goes ``push_m`` below the floor so the vehicle keeps pressing down until the
+    autopilot reports the landed state; the runner ends the landing on that state, not on time.
+    """
+
+    def __init__(
+        self,
+        start_m: Vec3,
+        descent_m_s: float = 0.3,
+        floor_m: float = 0.0,
+        push_m: float = 0.3,
+        accel_m_s2: float = 0.5,
+        yaw_rad: float = 0.0,
+    ) -> None:
+        if not descent_m_s > 0.0:
+            raise ValueError(f"land: descent rate must be positive, got {descent_m_s} m/s")
+        start = (float(start_m[0]), float(start_m[1]), float(start_m[2]))
+        bottom = (start[0], start[1], min(float(floor_m), start[2]) - float(push_m))
+        super().__init__("land", [Move(start, bottom, descent_m_s, accel_m_s2, float(yaw_rad))], 1)
