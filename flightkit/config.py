@@ -49,6 +49,7 @@ __all__ = [
     "Autopilot",
     "BusConfig",
     "BusMode",
+    "CAPABILITY_SECTIONS",
     "CameraConfig",
     "LabConfig",
     "LinkBackend",
@@ -269,7 +270,22 @@ class LabConfig:
     sim: SimConfig = setting(default_factory=SimConfig)
     camera: CameraConfig = setting(default_factory=CameraConfig)
     source_path: str = setting("<defaults>", help="where this config came from (set by the loader)")
+    capability_tables: dict[str, Any] = field(default_factory=dict, metadata={"init_only_loader": True})
 
+    def section(self, name: str, cls: type[T]) -> T:
+        """Validate a capability table (e.g. ``[report]``) into ``cls``; defaults when absent.
+
+        Capability packages (trajectories, capture, estimation) own their sections; the core
+        only carries the raw table, so the layering stays one-way.
+        """
+        if name not in CAPABILITY_SECTIONS:
+            raise ValueError(f"{name!r} is not a registered capability section ({', '.join(CAPABILITY_SECTIONS)})")
+        return load_section(cls, self.capability_tables.get(name, {}), path=self.source_path, prefix=name)
+
+
+# Top-level tables that belong to capability packages: accepted by load_config and handed over
+# raw (LabConfig.section validates them with the owner's dataclass).
+CAPABILITY_SECTIONS = ("control", "safety", "report", "capture", "estimation", "mapframe")
 
 # --------------------------------------------------------------------------- loader
 
@@ -366,7 +382,7 @@ def load_section(cls: type[T], table: Mapping[str, Any], *, path: str = "<dict>"
     if not dataclasses.is_dataclass(cls):
         raise TypeError(f"{cls!r} is not a dataclass")
     hints = typing.get_type_hints(cls)
-    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.init and not f.metadata.get("init_only_loader")}
     dotted = (prefix + ".") if prefix else ""
     unknown = [k for k in table if k not in fields]
     if unknown:
@@ -410,6 +426,10 @@ def load_config(path: str | Path | None = None, table: Mapping[str, Any] | None 
     else:
         data = dict(table or {})
         src = "<dict>"
-    data = {k: v for k, v in data.items() if k != "source_path"}
+    data = {k: v for k, v in data.items() if k not in ("source_path", "capability_tables")}
+    extra = {k: data.pop(k) for k in list(data) if k in CAPABILITY_SECTIONS}
+    for name, table in extra.items():
+        if not isinstance(table, Mapping):
+            raise ConfigError(src, name, f"expected a table, got {table!r}", f"write it as [{name}]", table)
     cfg = load_section(LabConfig, data, path=src)
-    return dataclasses.replace(cfg, source_path=src)
+    return dataclasses.replace(cfg, source_path=src, capability_tables=extra)

@@ -99,3 +99,22 @@ def test_camera_intrinsics_defaults_and_mount() -> None:
     # The lab mount looks forward and 45 degrees down: optical axis (camera z) in the body frame.
     z_body = T_body_camera.rotation.apply([0.0, 0.0, 1.0])
     np.testing.assert_allclose(z_body, [math.sqrt(0.5), 0.0, -math.sqrt(0.5)], atol=1e-12)
+
+
+def test_capability_sections_are_carried_and_validated_by_their_owner(tmp_path: Path) -> None:
+    from dataclasses import dataclass
+
+    from flightkit.config import setting
+
+    @dataclass(frozen=True, slots=True)
+    class ReportSection:
+        rate_hz: float = setting(10.0, min=0.1, max=100.0)
+
+    cfg = load_config(write(tmp_path, "[report]\nrate_hz = 20\n[link]\nbaud = 115200\n"))
+    assert cfg.section("report", ReportSection).rate_hz == 20.0
+    assert cfg.section("capture", ReportSection).rate_hz == 10.0  # absent: defaults
+    bad = load_config(write(tmp_path, "[report]\nrate_hz = 1000\n"))
+    with pytest.raises(ConfigError, match="report.rate_hz"):
+        bad.section("report", ReportSection)
+    with pytest.raises(ValueError):
+        cfg.section("nonsense", ReportSection)
