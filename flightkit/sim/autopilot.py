@@ -110,11 +110,14 @@ def parse_endpoint(url: str) -> tuple[str, str, int]:
     host, _, port_s = rest.rpartition(":")
     if not sep or kind not in ("udpin", "udpout") or not host or not port_s.isdigit():
         raise EndpointError(
-            f"simulator endpoint {url!r} is not understood; use udpin:HOST:PORT (listen) or udpout:HOST:PORT (send)"
+            f"simulator endpoint {url!r} is not understood; "
+            "use udpin:HOST:PORT (listen) or udpout:HOST:PORT (send)"
         )
     port = int(port_s)
     if port > 65535 or (kind == "udpout" and port == 0):
-        raise EndpointError(f"port {port} in {url!r} is not usable; give a port from 1 to 65535 (0 only for udpin)")
+        raise EndpointError(
+            f"port {port} in {url!r} is not usable; give a port from 1 to 65535 (0 only for udpin)"
+        )
     return kind, host, port
 
 
@@ -238,7 +241,8 @@ class SimAutopilot:
         for name, value in self.options.params.items():
             if name not in self._params:
                 raise ValueError(
-                    f"unknown {personality.autopilot.value} parameter {name!r}; known: {', '.join(self._param_names)}"
+                    f"unknown {personality.autopilot.value} parameter {name!r}; "
+                    f"known: {', '.join(self._param_names)}"
                 )
             self._params[name] = float(value)
 
@@ -328,7 +332,11 @@ class SimAutopilot:
                 sock.bind(("0.0.0.0", self.options.local_port))
         except OSError as exc:
             sock.close()
-            where = f"{self._host}:{self._port}" if self._kind == "udpin" else f"local port {self.options.local_port}"
+            where = (
+                f"{self._host}:{self._port}"
+                if self._kind == "udpin"
+                else f"local port {self.options.local_port}"
+            )
             raise EndpointError(
                 f"cannot bind the simulated autopilot to {where}: {exc.strerror or exc}; "
                 "stop whatever uses that port (another sim or SITL?) or pick another port"
@@ -518,9 +526,7 @@ class SimAutopilot:
 
     def _ack(self, msg: Any, command: int, result: int) -> None:
         self._send(
-            self._mav.command_ack_encode(
-                command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()
-            )
+            self._mav.command_ack_encode(command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent())
         )
 
     def _event(self, kind: str, detail: str = "") -> None:
@@ -604,7 +610,8 @@ class SimAutopilot:
 
     def _forget_clients(self, now: float) -> None:
         stale = [
-            a for a, c in self._clients.items()
+            a
+            for a, c in self._clients.items()
             if not c.fixed and now - c.last_heard_s > self.options.client_timeout_s
         ]
         for addr in stale:
@@ -695,7 +702,9 @@ class SimAutopilot:
             self._hold_yaw = self._est_yaw_local()
         return self._goto(self._hold_target, 2.0, 1.0), self._hold_yaw, None
 
-    def _goto(self, target_local: npt.NDArray[np.float64], max_xy: float, max_z: float) -> npt.NDArray[np.float64]:
+    def _goto(
+        self, target_local: npt.NDArray[np.float64], max_xy: float, max_z: float
+    ) -> npt.NDArray[np.float64]:
         err = target_local - self._est_pos_local()
         v = 1.2 * err
         vh = math.hypot(v[0], v[1])
@@ -719,7 +728,10 @@ class SimAutopilot:
             if self._hold_target is None:
                 self._hold_target = est.copy()
                 self._hold_yaw = self._est_yaw_local()
-            if self.dynamics.motor_state()[0] is MotorState.SPINUP or est[2] < self._takeoff_alt_local_m - 0.05:
+            if (
+                self.dynamics.motor_state()[0] is MotorState.SPINUP
+                or est[2] < self._takeoff_alt_local_m - 0.05
+            ):
                 vel_local = self._goto(
                     np.array([self._hold_target[0], self._hold_target[1], est[2]]), 1.0, 0.0
                 )
@@ -727,7 +739,9 @@ class SimAutopilot:
                 vel_local[2] = max(0.3, min(climb, 1.5 * remaining))
                 yaw_local, yaw_rate = self._hold_yaw, None
             else:
-                self._hold_target = np.array([self._hold_target[0], self._hold_target[1], self._takeoff_alt_local_m])
+                self._hold_target = np.array(
+                    [self._hold_target[0], self._hold_target[1], self._takeoff_alt_local_m]
+                )
                 self._takeoff_alt_local_m = None
                 self._event("takeoff", "complete")
                 if p.takeoff_mode is not None and mode is p.takeoff_mode:
@@ -752,7 +766,9 @@ class SimAutopilot:
         yaw_world = None
         if yaw_local is not None:
             yaw_world = wrap_angle_rad(yaw_local - self._yaw_bias + self.options.heading_offset_rad)
-        self.dynamics.command(vel_world, yaw_rad=yaw_world, yaw_rate_rad_s=None if yaw_world is not None else yaw_rate)
+        self.dynamics.command(
+            vel_world, yaw_rad=yaw_world, yaw_rate_rad_s=None if yaw_world is not None else yaw_rate
+        )
 
     def _land_speed(self) -> float:
         if "MPC_LAND_SPEED" in self._params:
@@ -877,7 +893,9 @@ class SimAutopilot:
             # align the estimator's frame with the vision frame; keep the position estimate continuous
             meas_yaw = wrap_angle_rad(math.pi / 2.0 - yaw_ned)
             before = self._est_pos_local()
-            self._yaw_bias = wrap_angle_rad(self._yaw_bias + gain * wrap_angle_rad(meas_yaw - self._est_yaw_local()))
+            self._yaw_bias = wrap_angle_rad(
+                self._yaw_bias + gain * wrap_angle_rad(meas_yaw - self._est_yaw_local())
+            )
             self._est_bias = self._est_bias + (before - self._est_pos_local())
 
     # ================================================================== message handling
@@ -888,7 +906,9 @@ class SimAutopilot:
             if msg.type == mav.MAV_TYPE_GCS:
                 if not self._gcs_heard:
                     self._gcs_heard = True
-                    logger.info("heard a GCS heartbeat from %d/%d", msg.get_srcSystem(), msg.get_srcComponent())
+                    logger.info(
+                        "heard a GCS heartbeat from %d/%d", msg.get_srcSystem(), msg.get_srcComponent()
+                    )
             return
         target_system = getattr(msg, "target_system", None)
         if target_system not in (None, 0, self.options.system_id):
@@ -1016,7 +1036,9 @@ class SimAutopilot:
                 self._event("mode_refused", mode.value)
                 return p.reject_result
         if p.autopilot.value == "ardupilot" and mode in _NEEDS_POSITION_ARDUPILOT and not self._ready(now):
-            self._statustext(f"Mode change to {mode.value} failed: requires position", mav.MAV_SEVERITY_WARNING)
+            self._statustext(
+                f"Mode change to {mode.value} failed: requires position", mav.MAV_SEVERITY_WARNING
+            )
             return p.reject_result
         if mode is p.takeoff_mode:
             alt = self._params.get("MIS_TAKEOFF_ALT", 2.5)
@@ -1039,7 +1061,9 @@ class SimAutopilot:
             self._statustext(p.texts.get("takeoff_not_armed", "Takeoff: not armed"), mav.MAV_SEVERITY_WARNING)
             return p.reject_result
         if p.takeoff_requires_mode and self._mode not in p.takeoff_requires_mode:
-            self._statustext(p.texts.get("takeoff_wrong_mode", "Takeoff: wrong mode"), mav.MAV_SEVERITY_WARNING)
+            self._statustext(
+                p.texts.get("takeoff_wrong_mode", "Takeoff: wrong mode"), mav.MAV_SEVERITY_WARNING
+            )
             return p.reject_result
         if p.autopilot.value == "ardupilot" and not self.dynamics.on_ground:
             return p.reject_result  # ArduPilot: "already flying"
@@ -1114,7 +1138,9 @@ class SimAutopilot:
             self._disarm(now, "Flight termination active", "termination")
         return mav.MAV_RESULT_ACCEPTED
 
-    def _cmd_set_message_interval(self, msg: Any, params: list[float], now: float, is_int: bool) -> int | None:
+    def _cmd_set_message_interval(
+        self, msg: Any, params: list[float], now: float, is_int: bool
+    ) -> int | None:
         msg_id, interval_us = _as_int(params[0]), params[1]
         if msg_id not in _STREAM_BUILDERS:
             return mav.MAV_RESULT_DENIED
@@ -1131,7 +1157,9 @@ class SimAutopilot:
         self._next_due[msg_id] = now
         return mav.MAV_RESULT_ACCEPTED
 
-    def _cmd_get_message_interval(self, msg: Any, params: list[float], now: float, is_int: bool) -> int | None:
+    def _cmd_get_message_interval(
+        self, msg: Any, params: list[float], now: float, is_int: bool
+    ) -> int | None:
         msg_id = _as_int(params[0])
         if msg_id not in _STREAM_BUILDERS:
             interval = 0
@@ -1146,7 +1174,11 @@ class SimAutopilot:
     def _cmd_request_message(self, msg: Any, params: list[float], now: float, is_int: bool) -> int | None:
         out = self._build_message(_as_int(params[0]), now, on_request=True)
         if out is None:
-            return mav.MAV_RESULT_UNSUPPORTED if _as_int(params[0]) not in _STREAM_BUILDERS else mav.MAV_RESULT_DENIED
+            return (
+                mav.MAV_RESULT_UNSUPPORTED
+                if _as_int(params[0]) not in _STREAM_BUILDERS
+                else mav.MAV_RESULT_DENIED
+            )
         self._ack(msg, mav.MAV_CMD_REQUEST_MESSAGE, mav.MAV_RESULT_ACCEPTED)
         self._send(out)
         return None
@@ -1202,7 +1234,9 @@ class SimAutopilot:
                 yaw = wrap_angle_rad(math.pi / 2.0 - msg.yaw)
         elif not mask & _IGNORE_YAW_RATE and math.isfinite(msg.yaw_rate):
             yaw_rate = -float(msg.yaw_rate)
-        if (pos is not None and not np.all(np.isfinite(pos))) or (vel is not None and not np.all(np.isfinite(vel))):
+        if (pos is not None and not np.all(np.isfinite(pos))) or (
+            vel is not None and not np.all(np.isfinite(vel))
+        ):
             return
         sp = _Setpoint(now, pos, vel, yaw, yaw_rate)
         if p.loss_action is LossAction.FAILSAFE_MODE:
@@ -1299,7 +1333,13 @@ class SimAutopilot:
         if self._armed:
             base |= mav.MAV_MODE_FLAG_SAFETY_ARMED
         if p.autopilot.value == "px4":
-            if self._mode in (FlightMode.OFFBOARD, FlightMode.TAKEOFF, FlightMode.HOLD, FlightMode.LAND, FlightMode.RTL):
+            if self._mode in (
+                FlightMode.OFFBOARD,
+                FlightMode.TAKEOFF,
+                FlightMode.HOLD,
+                FlightMode.LAND,
+                FlightMode.RTL,
+            ):
                 base |= mav.MAV_MODE_FLAG_AUTO_ENABLED | mav.MAV_MODE_FLAG_GUIDED_ENABLED
             else:
                 base |= mav.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED
@@ -1338,11 +1378,27 @@ class SimAutopilot:
         present = sensors | mav.MAV_SYS_STATUS_PREARM_CHECK
         if self._ev_pos_enabled():
             present |= mav.MAV_SYS_STATUS_SENSOR_VISION_POSITION
-        health = present if self._ready(now) else sensors & ~(mav.MAV_SYS_STATUS_SENSOR_GPS | mav.MAV_SYS_STATUS_AHRS)
+        health = (
+            present
+            if self._ready(now)
+            else sensors & ~(mav.MAV_SYS_STATUS_SENSOR_GPS | mav.MAV_SYS_STATUS_AHRS)
+        )
         frac, volts = self._battery()
         current_ca = 1500 if self._armed else 50
         return self._mav.sys_status_encode(
-            present, present, health, 250, int(volts * 1000), current_ca, int(round(frac * 100)), 0, 0, 0, 0, 0, 0
+            present,
+            present,
+            health,
+            250,
+            int(volts * 1000),
+            current_ca,
+            int(round(frac * 100)),
+            0,
+            0,
+            0,
+            0,
+            0,
+            0,
         )
 
     def _battery_status(self, now: float) -> Any:
@@ -1375,7 +1431,9 @@ class SimAutopilot:
 
     def _attitude_ned(self) -> tuple[float, float, float, float]:
         st = self.dynamics.state()
-        yaw_ned = wrap_angle_rad(math.pi / 2.0 - (st.yaw_rad - self.options.heading_offset_rad + self._yaw_bias))
+        yaw_ned = wrap_angle_rad(
+            math.pi / 2.0 - (st.yaw_rad - self.options.heading_offset_rad + self._yaw_bias)
+        )
         # FLU roll/pitch -> FRD roll (same sign) / pitch (opposite sign: FLU +pitch is nose down)
         return st.roll_rad, -st.pitch_rad, yaw_ned, -st.yaw_rate_rad_s
 
@@ -1412,10 +1470,19 @@ class SimAutopilot:
         vel = self._est_vel_local()
         lat, lon, alt = self._global_of_local(pos)
         rel = int(round((pos[2] - self._home_local_enu[2]) * 1000))
-        hdg = int(round(math.degrees(wrap_angle_rad(math.pi / 2 - self._est_yaw_local())) % 360 * 100)) % 36000
+        hdg = (
+            int(round(math.degrees(wrap_angle_rad(math.pi / 2 - self._est_yaw_local())) % 360 * 100)) % 36000
+        )
         return self._mav.global_position_int_encode(
-            self._time_boot_ms(now), lat, lon, alt, rel,
-            int(vel[1] * 100), int(vel[0] * 100), int(-vel[2] * 100), hdg,
+            self._time_boot_ms(now),
+            lat,
+            lon,
+            alt,
+            rel,
+            int(vel[1] * 100),
+            int(vel[0] * 100),
+            int(-vel[2] * 100),
+            hdg,
         )
 
     def _home_position(self, now: float) -> Any:
@@ -1426,7 +1493,16 @@ class SimAutopilot:
         yaw_ned = wrap_angle_rad(math.pi / 2 - self._home_yaw_local)
         q = (math.cos(yaw_ned / 2), 0.0, 0.0, math.sin(yaw_ned / 2))
         return self._mav.home_position_encode(
-            lat, lon, alt, float(h[1]), float(h[0]), float(-h[2]), q, 0.0, 0.0, 0.0,
+            lat,
+            lon,
+            alt,
+            float(h[1]),
+            float(h[0]),
+            float(-h[2]),
+            q,
+            0.0,
+            0.0,
+            0.0,
             self.clock.time_ns() // 1000,
         )
 
@@ -1439,7 +1515,11 @@ class SimAutopilot:
         hdg = int(round(math.degrees(wrap_angle_rad(math.pi / 2 - self._est_yaw_local())))) % 360
         throttle = 0 if not self._armed else (50 if not self.dynamics.on_ground else 10)
         return self._mav.vfr_hud_encode(
-            0.0, float(math.hypot(vel[0], vel[1])), hdg, throttle, float(self.options.origin_alt_m + pos[2]),
+            0.0,
+            float(math.hypot(vel[0], vel[1])),
+            hdg,
+            throttle,
+            float(self.options.origin_alt_m + pos[2]),
             float(vel[2]),
         )
 
@@ -1461,8 +1541,18 @@ class SimAutopilot:
         major, minor, patch = self.personality.firmware_version
         sw = (major << 24) | (minor << 16) | (patch << 8) | 0xFF  # FIRMWARE_VERSION_TYPE_OFFICIAL
         return self._mav.autopilot_version_encode(
-            caps, sw, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0,
-            0x51A0 + self.options.system_id, [0] * 18,
+            caps,
+            sw,
+            0,
+            0,
+            0,
+            [0] * 8,
+            [0] * 8,
+            [0] * 8,
+            0,
+            0,
+            0x51A0 + self.options.system_id,
+            [0] * 18,
         )
 
     def _protocol_version(self) -> Any:

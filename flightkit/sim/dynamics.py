@@ -77,7 +77,12 @@ class DynamicsParams:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        for name in ("velocity_time_constant_s", "max_accel_m_s2", "yaw_time_constant_s", "max_yaw_rate_rad_s"):
+        for name in (
+            "velocity_time_constant_s",
+            "max_accel_m_s2",
+            "yaw_time_constant_s",
+            "max_yaw_rate_rad_s",
+        ):
             if not getattr(self, name) > 0.0:
                 raise ValueError(f"DynamicsParams.{name} must be > 0, got {getattr(self, name)}")
         for name in ("spinup_s", "thrust_ramp_s", "wind_gust_m_s", "pos_noise_m", "pos_wander_m", "drag_1_s"):
@@ -318,7 +323,9 @@ class QuadDynamics:
             heading = self._rng.uniform(-math.pi, math.pi)
             peak = p.wind_gust_m_s * self._rng.uniform(0.5, 1.0)
             self._gusts.append(
-                _Gust(self._t, p.gust_duration_s, np.array([math.cos(heading), math.sin(heading), 0.0]) * peak)
+                _Gust(
+                    self._t, p.gust_duration_s, np.array([math.cos(heading), math.sin(heading), 0.0]) * peak
+                )
             )
             self._next_gust_s = self._t + p.gust_duration_s + self._draw_gust_gap()
         wind = np.zeros(3)

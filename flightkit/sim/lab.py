@@ -110,7 +110,9 @@ class SimLab:
         """Hooks called with every :class:`SimEvent` (from simulator threads; keep them quick)."""
         self.event_log: deque[SimEvent] = deque(maxlen=1000)
         self._cond = threading.Condition()
-        self.autopilot = SimAutopilot(self.personality, self.dynamics, self.clock, opts, on_event=self._on_event)
+        self.autopilot = SimAutopilot(
+            self.personality, self.dynamics, self.clock, opts, on_event=self._on_event
+        )
         self._started = False
 
     # ------------------------------------------------------------------ lifecycle

@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import enum
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import Mapping
 
 from flightkit.config import Autopilot
 from flightkit.link.base import FlightMode
@@ -64,7 +64,9 @@ class LossAction(enum.Enum):
     """What the autopilot does when the external setpoint stream stops."""
 
     FAILSAFE_MODE = "failsafe_mode"  # PX4: after COM_OF_LOSS_T switch to the COM_OBL_RC_ACT mode and brake
-    KEEP_THEN_BRAKE = "keep_then_brake"  # ArduPilot: keep the last velocity GUID_TIMEOUT, then brake, stay GUIDED
+    KEEP_THEN_BRAKE = (
+        "keep_then_brake"  # ArduPilot: keep the last velocity GUID_TIMEOUT, then brake, stay GUIDED
+    )
 
 
 # PX4 main / sub modes (px4_custom_mode.h)

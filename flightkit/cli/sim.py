@@ -1,0 +1,164 @@
+"""``flightkit sim``: run the simulated lab (autopilot on a UDP port, vehicle, mocap) until Ctrl-C."""
+
+from __future__ import annotations
+
+import argparse
+import math
+from typing import Any
+
+__all__ = ["register", "run"]
+
+
+def register(subparsers: Any) -> None:
+    p = subparsers.add_parser(
+        "sim",
+        help="run the simulated lab: a PX4- or ArduPilot-like autopilot on a real UDP port",
+        description=(
+            "Run a simulated vehicle and its autopilot speaking MAVLink 2 over UDP, like PX4 or "
+            "ArduPilot SITL. By default it listens on udpin:127.0.0.1:14540 and answers every client "
+            "that sends to it (connect with udpout:127.0.0.1:14540, or MAVSDK udpout://127.0.0.1:14540)."
+        ),
+    )
+    p.add_argument(
+        "--autopilot", choices=["px4", "ardupilot"], help="firmware personality (default: from config)"
+    )
+    where = p.add_mutually_exclusive_group()
+    where.add_argument(
+        "--listen", metavar="URL", help="udpin:HOST:PORT to listen on (default udpin:127.0.0.1:14540)"
+    )
+    where.add_argument(
+        "--connect", metavar="URL", help="udpout:HOST:PORT of a listening client (as PX4 SITL does)"
+    )
+    p.add_argument(
+        "--speed", type=float, help="simulated seconds per wall second (default: config sim.speed)"
+    )
+    p.add_argument("--config", metavar="LAB.toml", help="lab config file")
+    p.add_argument(
+        "--ready-after",
+        type=float,
+        default=2.0,
+        metavar="S",
+        help="seconds until the estimator is ready and arming is allowed (default 2)",
+    )
+    p.add_argument(
+        "--heading-offset-deg",
+        type=float,
+        default=0.0,
+        help="rotation of the autopilot's local frame (its north) about the lab's z axis",
+    )
+    p.add_argument(
+        "--signing-key", metavar="HEX", help="MAVLink 2 signing key, 64 hex digits (default: config)"
+    )
+    p.add_argument("--no-mocap", action="store_true", help="do not publish simulated mocap on the bus")
+    p.add_argument(
+        "--no-camera", action="store_true", help="do not publish the simulated camera streams on the bus"
+    )
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    import threading
+
+    from flightkit.clock import SimClock
+    from flightkit.config import load_config
+    from flightkit.errors import ConfigError
+    from flightkit.sim.autopilot import AutopilotOptions
+    from flightkit.sim.lab import SimEvent, SimLab
+
+    config = load_config(args.config) if args.config else load_config()
+    speed = args.speed if args.speed is not None else config.sim.speed
+    if not (speed > 0 and math.isfinite(speed)):
+        raise ConfigError(
+            "<command line>", "--speed", f"{speed!r} is not a positive number", "give e.g. --speed 5"
+        )
+    url = args.connect or args.listen or "udpin:127.0.0.1:14540"
+    key_hex = args.signing_key if args.signing_key is not None else config.link.signing_key_hex
+    key: bytes | None = None
+    if key_hex:
+        try:
+            key = bytes.fromhex(key_hex)
+        except ValueError:
+            key = b""
+        if len(key) != 32:
+            raise ConfigError("<command line>", "signing key", "is not 64 hex digits", "give 32 bytes as hex")
+    options = AutopilotOptions(
+        url=url,
+        ready_after_s=args.ready_after,
+        heading_offset_rad=math.radians(args.heading_offset_deg),
+        signing_key=key,
+    )
+    lab = SimLab(config, autopilot=args.autopilot, clock=SimClock(speed), options=options)
+
+    def show(event: SimEvent) -> None:
+        if event.kind in ("param",):
+            return
+        print(f"[t={event.stamp_s:8.2f} s] {event.kind}: {event.detail}", flush=True)
+
+    lab.events.append(show)
+    stop = threading.Event()
+    with lab:
+        print(f"flightkit sim: {lab.personality.vehicle_name}, {lab.clock!r}")
+        if url.startswith("udpout"):
+            print(f"  MAVLink: sending to {url.split(':', 1)[1].lstrip('/')} from local port {lab.port}")
+        else:
+            print(
+                f"  MAVLink: listening on {lab.url}; connect with {lab.client_url} "
+                f"(MAVSDK: udpout://{lab.client_url.split(':', 1)[1]})"
+            )
+        if key is not None:
+            print("  MAVLink 2 signing: on (unsigned messages are ignored)")
+        publisher = None if args.no_mocap else _start_mocap(lab, config)
+        camera = None if args.no_camera or not config.camera.enabled else _start_camera(lab, config)
+        try:
+            print("  Ctrl-C to stop")
+            while not stop.wait(0.5):
+                pass
+        except KeyboardInterrupt:
+            print("flightkit sim: stopping")
+        finally:
+            if camera is not None:
+                camera.stop()
+            if publisher is not None:
+                close = getattr(publisher, "stop", None) or getattr(publisher, "close", None)
+                if callable(close):
+                    close()
+    return 0
+
+
+def _start_mocap(lab: Any, config: Any) -> Any:
+    """Start the simulated mocap publisher when that module is available (bus layer, optional)."""
+    try:
+        from flightkit.sim import mocap_publisher
+    except ImportError:
+        print("  mocap: not published (flightkit.sim.mocap_publisher is not available)")
+        return None
+    factory = getattr(mocap_publisher, "MocapPublisher", None)
+    if factory is None:
+        print("  mocap: not published (flightkit.sim.mocap_publisher has no MocapPublisher)")
+        return None
+    try:
+        publisher = factory(lab, config)
+        start = getattr(publisher, "start", None)
+        if callable(start):
+            start()
+    except Exception as exc:  # the sim itself still runs without mocap
+        print(f"  mocap: not published ({exc})")
+        return None
+    print(f"  mocap: publishing body {config.mocap.body!r} at {config.sim.mocap_rate_hz:g} Hz on the bus")
+    return publisher
+
+
+def _start_camera(lab: Any, config: Any) -> Any:
+    """Publish the simulated camera (capture.sources.sim) on the bus; None if it cannot start."""
+    try:
+        from capture.sources.sim import start_sim_camera
+
+        camera = start_sim_camera(lab, config)
+    except Exception as exc:  # the sim itself still runs without the camera
+        print(f"  camera: not published ({exc})")
+        return None
+    print(
+        f"  camera: {config.camera.width_px}x{config.camera.height_px} at {config.camera.rate_hz:g} Hz on "
+        f"{', '.join(camera.publisher.keys)}"
+    )
+    return camera
