@@ -149,6 +149,8 @@ class Recorder:
         split_size_mb / split_duration_s: start a new file past this size or duration.
         chunk_size: bytes per chunk; chunk_max_age_s: close a chunk at least this often.
         queue_limit_bytes: memory the recorder may hold while the disk catches up.
+        on_flush: called on the writer thread after each chunk reaches the OS, with the
+            ``publish_time_ns`` of every message in it (for publish-to-disk latency figures).
 
     Raises:
         CaptureError: if the output exists (and overwriting was not allowed) or cannot be created.
@@ -167,6 +169,7 @@ class Recorder:
         chunk_size: int = 4 << 20,
         chunk_max_age_s: float = 0.5,
         queue_limit_bytes: int = 1 << 30,
+        on_flush: Callable[[list[int]], None] | None = None,
     ) -> None:
         self._base = Path(path)
         if self._base.suffix != ".mcap":
@@ -195,7 +198,9 @@ class Recorder:
         self._chunk_max_age_s = chunk_max_age_s
         self._queue_limit = queue_limit_bytes
         self._queued_bytes = 0
-        self._q: queue.SimpleQueue[StreamSample | None] = queue.SimpleQueue()
+        self._on_flush = on_flush
+        self._chunk_stamps: list[int] = []
+        self._q: queue.SimpleQueue[StreamSample | _MetadataItem | None] = queue.SimpleQueue()
         self._lock = threading.Lock()
         self._stats: dict[str, StreamStats] = {}
         self._files: list[Path] = []
@@ -232,6 +237,11 @@ class Recorder:
             self._queued_bytes += size
         self._q.put(sample)
         return True
+
+    def add_metadata(self, name: str, data: Mapping[str, str]) -> None:
+        """Write a metadata record (e.g. a camera's calibration seen on the bus) into the current
+        file, and into every later split file; returns immediately."""
+        self._q.put(_MetadataItem(name, {str(k): str(v) for k, v in data.items()}))
 
     def snapshot(self) -> dict[str, StreamStats]:
         """A copy of the per-stream counters, for live display."""
@@ -297,6 +307,9 @@ class Recorder:
         cur.fh.flush()  # type: ignore[attr-defined]
         cur.unflushed = 0
         cur.last_flush_s = time.monotonic()
+        if self._on_flush is not None and self._chunk_stamps:
+            stamps, self._chunk_stamps = self._chunk_stamps, []
+            self._on_flush(stamps)
 
     def _finish_current(self) -> None:
         cur = self._current
@@ -336,6 +349,8 @@ class Recorder:
             cur.channels[s.topic] = ch
         cur.writer.add_message(ch, s.log_time_ns, bytes(s.payload), s.publish_time_ns, s.seq & 0xFFFFFFFF)
         cur.unflushed += len(s.payload) + 40
+        if self._on_flush is not None:
+            self._chunk_stamps.append(s.publish_time_ns)
         with self._lock:
             st = self._stats[s.topic]
             if st.last_seq >= 0 and s.seq > st.last_seq + 1:
@@ -360,7 +375,11 @@ class Recorder:
                     s = False  # type: ignore[assignment]
                 if s is None:
                     break
-                if s is not False:
+                if isinstance(s, _MetadataItem):
+                    self._metadata[s.name] = s.data
+                    if self._current is not None:
+                        self._current.writer.add_metadata(s.name, s.data)
+                elif s is not False:
                     with self._lock:
                         self._queued_bytes -= len(s.payload)
                     self._write(s)
@@ -409,11 +428,17 @@ class Recorder:
                 s = self._q.get_nowait()
             except queue.Empty:
                 return
-            if s is None:
+            if s is None or isinstance(s, _MetadataItem):
                 continue
             with self._lock:
                 self._queued_bytes -= len(s.payload)
                 self._stats[s.topic].dropped += 1
+
+
+@dataclass(frozen=True, slots=True)
+class _MetadataItem:
+    name: str
+    data: dict[str, str]
 
 
 class _DiskFull(Exception):
