@@ -101,7 +101,6 @@ def recording_metadata(lab_cfg: LabConfig | None) -> dict[str, dict[str, str]]:
         "extrinsics": {
             "T_body_camera": transform_metadata(cam.T_body_camera.to_transform()),
             "T_world_mocap": transform_metadata(lab_cfg.mocap.T_world_mocap.to_transform()),
-            "T_world_mocap_sim": transform_metadata(lab_cfg.sim.T_world_mocap.to_transform()),
             "mocap_body": lab_cfg.mocap.body,
             "camera_frame": "opencv (x right, y down, z forward)",
             "body_frame": "flu",

@@ -213,16 +213,15 @@ class BusConfig:
 
 @dataclass(frozen=True, slots=True)
 class SimConfig:
+    """The simulated lab. Its mocap system sits where ``[mocap.T_world_mocap]`` says the lab's
+    does, and publishes in that (mocap) frame, so consumers must apply the calibration."""
+
     speed: float = setting(1.0, min=0.01, max=1000.0, help="simulated seconds per wall second")
     mocap_rate_hz: float = setting(120.0, min=1.0, max=1000.0, help="simulated mocap rate")
     mocap_noise_m: float = setting(0.0, min=0.0, max=1.0, help="std-dev of mocap position noise")
     velocity_time_constant_s: float = setting(0.25, min=0.01, max=5.0, help="velocity tracking lag")
     max_accel_m_s2: float = setting(4.0, min=0.1, max=50.0, help="acceleration limit")
     wind_gust_m_s: float = setting(0.0, min=0.0, max=20.0, help="peak wind gust speed")
-    T_world_mocap: TransformConfig = setting(
-        default_factory=lambda: TransformConfig(translation_m=(0.5, -0.3, 0.0), rpy_deg=(0.0, 0.0, 30.0)),
-        help="where the simulated mocap system's frame sits in the world",
-    )
 
 
 @dataclass(frozen=True, slots=True)

@@ -119,33 +119,44 @@ def run(args: argparse.Namespace) -> int:
             if camera is not None:
                 camera.stop()
             if publisher is not None:
-                close = getattr(publisher, "stop", None) or getattr(publisher, "close", None)
-                if callable(close):
-                    close()
+                publisher.stop()
     return 0
 
 
 def _start_mocap(lab: Any, config: Any) -> Any:
-    """Start the simulated mocap publisher when that module is available (bus layer, optional)."""
-    try:
-        from flightkit.sim import mocap_publisher
-    except ImportError:
-        print("  mocap: not published (flightkit.sim.mocap_publisher is not available)")
-        return None
-    factory = getattr(mocap_publisher, "MocapPublisher", None)
-    if factory is None:
-        print("  mocap: not published (flightkit.sim.mocap_publisher has no MocapPublisher)")
-        return None
-    try:
-        publisher = factory(lab, config)
-        start = getattr(publisher, "start", None)
-        if callable(start):
-            start()
-    except Exception as exc:  # the sim itself still runs without mocap
-        print(f"  mocap: not published ({exc})")
-        return None
-    print(f"  mocap: publishing body {config.mocap.body!r} at {config.sim.mocap_rate_hz:g} Hz on the bus")
-    return publisher
+    """Publish the vehicle's pose as mocap on the bus, in the mocap frame of ``[mocap.T_world_mocap]``."""
+    from flightkit.bus.keys import Keys
+    from flightkit.bus.session import open_session
+    from flightkit.sim.mocap_publisher import SimMocapPublisher
+
+    session = open_session(config.bus)
+    clock = lab.clock
+    publisher = SimMocapPublisher(
+        session,
+        Keys(config.vehicle.namespace),
+        config.mocap.body,
+        truth=lambda: (clock.time_ns(), lab.T_world_body()),
+        clock=clock,
+        T_world_mocap=config.mocap.T_world_mocap.to_transform(),
+        rate_hz=config.sim.mocap_rate_hz,
+        noise_m=config.sim.mocap_noise_m,
+    ).start()
+    print(
+        f"  mocap: body {config.mocap.body!r} at {config.sim.mocap_rate_hz:g} Hz on {publisher.key} "
+        "(PoseStamped in the mocap frame)"
+    )
+    return _Closing(publisher, session)
+
+
+class _Closing:
+    """Stops a publisher, then closes the bus session it used."""
+
+    def __init__(self, publisher: Any, session: Any) -> None:
+        self.publisher, self.session = publisher, session
+
+    def stop(self) -> None:
+        self.publisher.stop()
+        self.session.close()
 
 
 def _start_camera(lab: Any, config: Any) -> Any:
