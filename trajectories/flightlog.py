@@ -64,8 +64,13 @@ class PhaseStats:
             self.max_error_m = err_m
 
     def to_dict(self) -> dict[str, Any]:
-        return {"name": self.name, "duration_s": round(self.duration_s, 3), "samples": self.samples,
-                "rms_error_m": _r(self.rms_error_m), "max_error_m": _r(self.max_error_m)}
+        return {
+            "name": self.name,
+            "duration_s": round(self.duration_s, 3),
+            "samples": self.samples,
+            "rms_error_m": _r(self.rms_error_m),
+            "max_error_m": _r(self.max_error_m),
+        }
 
 
 def _r(x: float, nd: int = 4) -> float | None:
@@ -113,10 +118,15 @@ class FlightSummary:
 
     def to_dict(self) -> dict[str, Any]:
         return {
-            "plan": self.plan, "outcome": self.outcome, "duration_s": round(self.duration_s, 3),
-            "laps_completed": self.laps_completed, "loop_rate_hz": _r(self.loop_rate_hz, 1),
-            "cycle_p50_ms": _r(self.cycle_p50_ms, 4), "cycle_p99_ms": _r(self.cycle_p99_ms, 4),
-            "phases": [p.to_dict() for p in self.phases], "faults": [f.to_dict() for f in self.faults],
+            "plan": self.plan,
+            "outcome": self.outcome,
+            "duration_s": round(self.duration_s, 3),
+            "laps_completed": self.laps_completed,
+            "loop_rate_hz": _r(self.loop_rate_hz, 1),
+            "cycle_p50_ms": _r(self.cycle_p50_ms, 4),
+            "cycle_p99_ms": _r(self.cycle_p99_ms, 4),
+            "phases": [p.to_dict() for p in self.phases],
+            "faults": [f.to_dict() for f in self.faults],
             "log_path": self.log_path,
         }
 
@@ -125,9 +135,11 @@ class FlightSummary:
 
     def format_table(self) -> str:
         """A plain-text table for terminals."""
-        lines = [f"flight {self.plan!r}: {self.outcome}, {self.duration_s:.1f} s, "
-                 f"{self.laps_completed} lap(s), loop {self.loop_rate_hz:.0f} Hz "
-                 f"(cycle p50 {self.cycle_p50_ms:.3f} ms, p99 {self.cycle_p99_ms:.3f} ms)"]
+        lines = [
+            f"flight {self.plan!r}: {self.outcome}, {self.duration_s:.1f} s, "
+            f"{self.laps_completed} lap(s), loop {self.loop_rate_hz:.0f} Hz "
+            f"(cycle p50 {self.cycle_p50_ms:.3f} ms, p99 {self.cycle_p99_ms:.3f} ms)"
+        ]
         lines.append(f"  {'phase':<10} {'time s':>8} {'RMS err m':>10} {'max err m':>10}")
         for p in self.phases:
             lines.append(f"  {p.name:<10} {p.duration_s:>8.1f} {p.rms_error_m:>10.4f} {p.max_error_m:>10.4f}")
@@ -237,7 +249,7 @@ def read_flight_log(path: str | Path) -> FlightLogData:
         first = fh.readline()
         if not first.startswith(_MAGIC):
             raise ValueError(f"{path} is not a flightkit flight log (first line {first[:40]!r})")
-        meta = json.loads(first[len(_MAGIC):])
+        meta = json.loads(first[len(_MAGIC) :])
         for line in fh:
             if line.startswith("# fault "):
                 faults.append(json.loads(line[8:]))

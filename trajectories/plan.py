@@ -34,7 +34,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from flightkit.config import load_section, load_toml, setting
+from flightkit.config import LabConfig, load_section, load_toml, setting
 from flightkit.errors import ConfigError
 from trajectories.base import Pattern, YawMode
 from trajectories.circle import Circle
@@ -69,7 +69,9 @@ class PlanSettings:
     floor_m: float = setting(0.0, min=-10.0, max=10.0, help="world z of the floor")
     hold_before_s: float = setting(5.0, min=0.0, max=600.0, help="hold before the pattern")
     hold_after_s: float = setting(5.0, min=0.0, max=600.0, help="hold after the pattern")
-    transit_speed_m_s: float = setting(0.3, min=0.05, max=3.0, help="speed of the move to the pattern's start")
+    transit_speed_m_s: float = setting(
+        0.3, min=0.05, max=3.0, help="speed of the move to the pattern's start"
+    )
     accel_m_s2: float = setting(0.5, min=0.05, max=10.0, help="acceleration of take-off, transit and landing")
     rate_hz: float = setting(100.0, min=5.0, max=500.0, help="control loop rate")
     arm_timeout_s: float = setting(60.0, min=1.0, max=3600.0, help="how long to wait for the pilot to arm")
@@ -97,16 +99,28 @@ class CircleSpec:
     @staticmethod
     def _check(obj: CircleSpec, path: str, key: str) -> None:
         if (obj.period_s > 0.0) == (obj.speed_m_s > 0.0):
-            raise ConfigError(path, f"{key}.period_s", "give exactly one of period_s and speed_m_s",
-                              "set period_s (seconds per lap) or speed_m_s, not both", obj.period_s)
+            raise ConfigError(
+                path,
+                f"{key}.period_s",
+                "give exactly one of period_s and speed_m_s",
+                "set period_s (seconds per lap) or speed_m_s, not both",
+                obj.period_s,
+            )
         _check_direction(obj.direction, path, key)
 
     def build(self) -> Pattern:
         return Circle(
-            centre_m=(self.centre_m[0], self.centre_m[1]), radius_m=self.radius_m, height_m=self.height_m,
-            period_s=self.period_s or None, speed_m_s=self.speed_m_s or None, laps=self.laps,
-            clockwise=self.direction == "cw", yaw_mode=self.yaw, fixed_yaw_rad=math.radians(self.yaw_deg),
-            start_angle_rad=math.radians(self.start_angle_deg), accel_m_s2=self.accel_m_s2,
+            centre_m=(self.centre_m[0], self.centre_m[1]),
+            radius_m=self.radius_m,
+            height_m=self.height_m,
+            period_s=self.period_s or None,
+            speed_m_s=self.speed_m_s or None,
+            laps=self.laps,
+            clockwise=self.direction == "cw",
+            yaw_mode=self.yaw,
+            fixed_yaw_rad=math.radians(self.yaw_deg),
+            start_angle_rad=math.radians(self.start_angle_deg),
+            accel_m_s2=self.accel_m_s2,
         )
 
 
@@ -132,19 +146,33 @@ class RectangleSpec:
     def _check(obj: RectangleSpec, path: str, key: str) -> None:
         _check_direction(obj.direction, path, key)
         if obj.corners_m and (len(obj.corners_m) < 3 or any(len(c) != 2 for c in obj.corners_m)):
-            raise ConfigError(path, f"{key}.corners_m", "needs 3 or more [x, y] pairs",
-                              "write corners_m = [[x, y], [x, y], ...]", obj.corners_m)
+            raise ConfigError(
+                path,
+                f"{key}.corners_m",
+                "needs 3 or more [x, y] pairs",
+                "write corners_m = [[x, y], [x, y], ...]",
+                obj.corners_m,
+            )
 
     def build(self) -> Pattern:
         if self.corners_m:
             corners = [(c[0], c[1]) for c in self.corners_m]
         else:
-            corners = rectangle_corners(self.centre_m, self.size_m, math.radians(self.rotation_deg),
-                                        self.start_corner)
+            corners = rectangle_corners(
+                self.centre_m, self.size_m, math.radians(self.rotation_deg), self.start_corner
+            )
             if self.direction == "cw":
                 corners = [corners[0], *reversed(corners[1:])]
-        return Rectangle(corners, self.height_m, self.speed_m_s, self.accel_m_s2, self.turn_s, self.laps,
-                         self.yaw, math.radians(self.yaw_deg))
+        return Rectangle(
+            corners,
+            self.height_m,
+            self.speed_m_s,
+            self.accel_m_s2,
+            self.turn_s,
+            self.laps,
+            self.yaw,
+            math.radians(self.yaw_deg),
+        )
 
 
 @dataclass(frozen=True, slots=True)
@@ -170,11 +198,21 @@ class LawnmowerSpec:
         if obj.origin_m and len(obj.origin_m) != 2:
             raise ConfigError(path, f"{key}.origin_m", "expected 2 values", "give [x, y]", obj.origin_m)
         if obj.yaw not in (YawMode.TRAVEL, YawMode.FIXED):
-            raise ConfigError(path, f"{key}.yaw", f"{obj.yaw.value!r} is not allowed here", "use travel or fixed",
-                              obj.yaw.value)
+            raise ConfigError(
+                path,
+                f"{key}.yaw",
+                f"{obj.yaw.value!r} is not allowed here",
+                "use travel or fixed",
+                obj.yaw.value,
+            )
         if obj.laps > 1 and not obj.return_to_start:
-            raise ConfigError(path, f"{key}.laps", "several passes need return_to_start = true",
-                              "set return_to_start = true or laps = 1", obj.laps)
+            raise ConfigError(
+                path,
+                f"{key}.laps",
+                "several passes need return_to_start = true",
+                "set return_to_start = true or laps = 1",
+                obj.laps,
+            )
 
     def build(self) -> Pattern:
         if self.origin_m:
@@ -182,11 +220,24 @@ class LawnmowerSpec:
         else:
             a = math.radians(self.lane_dir_deg)
             hx, hy = self.size_m[0] / 2.0, self.size_m[1] / 2.0
-            origin = (self.centre_m[0] - math.cos(a) * hx + math.sin(a) * hy,
-                      self.centre_m[1] - math.sin(a) * hx - math.cos(a) * hy)
-        return Lawnmower(origin, self.size_m, self.spacing_m, self.height_m, self.speed_m_s, self.accel_m_s2,
-                         self.turn_s, math.radians(self.lane_dir_deg), self.laps, self.yaw,
-                         math.radians(self.yaw_deg), self.return_to_start)
+            origin = (
+                self.centre_m[0] - math.cos(a) * hx + math.sin(a) * hy,
+                self.centre_m[1] - math.sin(a) * hx - math.cos(a) * hy,
+            )
+        return Lawnmower(
+            origin,
+            self.size_m,
+            self.spacing_m,
+            self.height_m,
+            self.speed_m_s,
+            self.accel_m_s2,
+            self.turn_s,
+            math.radians(self.lane_dir_deg),
+            self.laps,
+            self.yaw,
+            math.radians(self.yaw_deg),
+            self.return_to_start,
+        )
 
 
 @dataclass(frozen=True, slots=True)
@@ -203,15 +254,26 @@ class WaypointsSpec:
     @staticmethod
     def _check(obj: WaypointsSpec, path: str, key: str) -> None:
         if len(obj.points_m) < 2 or any(len(p) != 3 for p in obj.points_m):
-            raise ConfigError(path, f"{key}.points_m", "needs 2 or more [x, y, z] points",
-                              "write points_m = [[x, y, z], [x, y, z], ...]", obj.points_m)
+            raise ConfigError(
+                path,
+                f"{key}.points_m",
+                "needs 2 or more [x, y, z] points",
+                "write points_m = [[x, y, z], [x, y, z], ...]",
+                obj.points_m,
+            )
         if obj.yaw not in (YawMode.TRAVEL, YawMode.FIXED):
-            raise ConfigError(path, f"{key}.yaw", f"{obj.yaw.value!r} is not allowed here", "use travel or fixed",
-                              obj.yaw.value)
+            raise ConfigError(
+                path,
+                f"{key}.yaw",
+                f"{obj.yaw.value!r} is not allowed here",
+                "use travel or fixed",
+                obj.yaw.value,
+            )
 
     def build(self) -> Pattern:
-        return Waypoints(self.points_m, self.speed_m_s, self.accel_m_s2, math.radians(self.yaw_deg), self.yaw,
-                         self.turn_s)
+        return Waypoints(
+            self.points_m, self.speed_m_s, self.accel_m_s2, math.radians(self.yaw_deg), self.yaw, self.turn_s
+        )
 
 
 @dataclass(frozen=True, slots=True)
@@ -241,7 +303,9 @@ PATTERN_KINDS: dict[str, type[Any]] = {
 
 def _check_direction(direction: str, path: str, key: str) -> None:
     if direction not in ("ccw", "cw"):
-        raise ConfigError(path, f"{key}.direction", f"{direction!r} is not allowed", "use 'ccw' or 'cw'", direction)
+        raise ConfigError(
+            path, f"{key}.direction", f"{direction!r} is not allowed", "use 'ccw' or 'cw'", direction
+        )
 
 
 @dataclass(frozen=True, slots=True)
@@ -254,6 +318,8 @@ class Plan:
         controller: gains and limits.
         safety: supervisor thresholds and geofence.
         source_path: where it came from.
+        tables: the raw ``[controller]`` / ``[safety]`` tables of a parsed plan (None when built
+            in Python), so :meth:`with_lab_defaults` can layer them over the lab's.
     """
 
     settings: PlanSettings
@@ -261,6 +327,7 @@ class Plan:
     controller: ControllerConfig = dataclasses.field(default_factory=ControllerConfig)
     safety: SafetyConfig = dataclasses.field(default_factory=SafetyConfig)
     source_path: str = "<dict>"
+    tables: Mapping[str, Any] | None = dataclasses.field(default=None, compare=False, repr=False)
 
     @property
     def name(self) -> str:
@@ -272,6 +339,31 @@ class Plan:
             return self.pattern.build()
         except ValueError as exc:
             raise ConfigError(self.source_path, "pattern", str(exc), "fix the [pattern] values") from exc
+
+    def with_lab_defaults(self, lab: LabConfig) -> Plan:
+        """This plan with the lab's own ``[control]`` and ``[safety]`` tables as defaults.
+
+        A lab config may describe its controller gains and its room (geofence, battery limit)
+        once; a plan's ``[controller]`` / ``[safety]`` keys override them key by key (the
+        ``[safety.geofence]`` sub-table too). Plans built in Python (no raw tables) are kept.
+
+        Raises:
+            ConfigError: the merged tables are invalid (naming the lab file and key).
+        """
+        lab_ctl = lab.capability_tables.get("control", {})
+        lab_safe = lab.capability_tables.get("safety", {})
+        if not lab_ctl and not lab_safe:
+            return self
+        if self.tables is None:
+            return self
+        ctl = _merge(lab_ctl, self.tables.get("controller", {}))
+        safe = _merge(lab_safe, self.tables.get("safety", {}))
+        where = f"{lab.source_path} + {self.source_path}"
+        return dataclasses.replace(
+            self,
+            controller=load_section(ControllerConfig, ctl, path=where, prefix="controller"),
+            safety=load_section(SafetyConfig, safe, path=where, prefix="safety"),
+        )
 
     def with_changes(self, **sections: Any) -> Plan:
         """A copy with some sections replaced, e.g. ``plan.with_changes(controller=cfg)``."""
@@ -289,21 +381,40 @@ def parse_plan(table: Mapping[str, Any], path: str = "<dict>") -> Plan:
         if key not in known:
             raise ConfigError(path, key, "unknown section", f"use only: {', '.join(sorted(known))}", key)
     if "pattern" not in table:
-        raise ConfigError(path, "pattern", "missing [pattern] table", "add [pattern] with kind = 'circle' (or other)")
+        raise ConfigError(
+            path, "pattern", "missing [pattern] table", "add [pattern] with kind = 'circle' (or other)"
+        )
     pat = dict(table["pattern"])
     kind = pat.pop("kind", None)
     if pat.get("yaw") == "tangent":
         pat["yaw"] = YawMode.TRAVEL.value  # the circle's word for facing the direction of travel
     if kind not in PATTERN_KINDS:
-        raise ConfigError(path, "pattern.kind", f"{kind!r} is not a pattern kind",
-                          f"use one of: {', '.join(PATTERN_KINDS)}", kind)
+        raise ConfigError(
+            path,
+            "pattern.kind",
+            f"{kind!r} is not a pattern kind",
+            f"use one of: {', '.join(PATTERN_KINDS)}",
+            kind,
+        )
     spec = load_section(PATTERN_KINDS[kind], pat, path=path, prefix="pattern")
     settings = load_section(PlanSettings, table.get("plan", {}), path=path, prefix="plan")
     controller = load_section(ControllerConfig, table.get("controller", {}), path=path, prefix="controller")
     safety = load_section(SafetyConfig, table.get("safety", {}), path=path, prefix="safety")
-    plan = Plan(settings, spec, controller, safety, path)
+    raw = {k: table[k] for k in ("controller", "safety") if k in table}
+    plan = Plan(settings, spec, controller, safety, path, raw)
     plan.build_pattern()  # surface pattern errors at load time
     return plan
+
+
+def _merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+    """``base`` updated by ``over``; sub-tables merged one level down."""
+    out = dict(base)
+    for k, v in over.items():
+        if isinstance(v, Mapping) and isinstance(out.get(k), Mapping):
+            out[k] = {**out[k], **v}
+        else:
+            out[k] = v
+    return out
 
 
 def load_plan(path: str | Path) -> Plan:

@@ -54,7 +54,15 @@ def plot_flight_log(log_path: str | Path, out_dir: str | Path | None = None) -> 
         ax.plot(t[m], np.where(np.isnan(err[m]), np.nan, err[m]), ".", ms=1.5, label=str(name))
     for f in log.faults:
         ax.axvline(f["time_s"], color="tab:red", lw=0.8)
-        ax.text(f["time_s"], ax.get_ylim()[1] * 0.95, f["kind"], rotation=90, va="top", fontsize=7, color="tab:red")
+        ax.text(
+            f["time_s"],
+            ax.get_ylim()[1] * 0.95,
+            f["kind"],
+            rotation=90,
+            va="top",
+            fontsize=7,
+            color="tab:red",
+        )
     ax.set_xlabel("flight time (s)")
     ax.set_ylabel("tracking error (m)")
     ax.grid(True, alpha=0.3)

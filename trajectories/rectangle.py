@@ -89,7 +89,9 @@ class Rectangle(PiecewisePattern):
             yaw = unwrap_next(prev, yaw)
             yaws.append(yaw)
             prev = yaw
-        points: list[Vec3] = [(x, y, float(height_m)) for x, y in pts] + [(pts[0][0], pts[0][1], float(height_m))]
+        points: list[Vec3] = [(x, y, float(height_m)) for x, y in pts] + [
+            (pts[0][0], pts[0][1], float(height_m))
+        ]
         segs: list[Segment] = chain(points, yaws, speed_m_s, accel_m_s2, turn_s)
         self.corners_m = tuple(pts)
         self.height_m = float(height_m)

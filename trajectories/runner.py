@@ -26,6 +26,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import functools
+import inspect
 import logging
 import math
 import signal
@@ -33,12 +35,19 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from flightkit.clock import Clock, WallClock
 from flightkit.config import Autopilot, LabConfig
-from flightkit.errors import CommandRejected, LinkError, LinkTimeout, MocapBodyMissing, SafetyAbort
-from flightkit.link.base import FlightMode, LandedState, VehicleLink, offboard_mode_for
+from flightkit.errors import (
+    CommandRejected,
+    LinkError,
+    LinkTimeout,
+    MocapBodyMissing,
+    MocapError,
+    SafetyAbort,
+)
+from flightkit.link.base import FlightMode, LandedState, VehicleLink, VelocitySetpoint, offboard_mode_for
 from flightkit.mocap.base import MocapPose, MocapSource
 from trajectories.base import Pattern, PiecewisePattern, Reference, Turn, Vec3
 from trajectories.circle import Circle
@@ -59,7 +68,7 @@ from trajectories.supervisor import (
 from trajectories.takeoff import Land, Takeoff
 from trajectories.waypoints import Waypoints
 
-__all__ = ["FlightRunner", "Status", "fly_plan", "pattern_in_fence", "with_laps"]
+__all__ = ["FlightRunner", "Status", "fly_plan", "open_lab_mocap", "pattern_in_fence", "with_laps"]
 
 logger = logging.getLogger(__name__)
 
@@ -93,12 +102,18 @@ class Status:
     message: str = ""
 
     def line(self) -> str:
-        p = "(  ---,   ---,   ---)" if self.pos_m is None else "({:5.2f}, {:5.2f}, {:5.2f})".format(*self.pos_m)
+        p = (
+            "(  ---,   ---,   ---)"
+            if self.pos_m is None
+            else "({:5.2f}, {:5.2f}, {:5.2f})".format(*self.pos_m)
+        )
         lap = f"lap {self.lap}/{self.laps}" if self.laps else "       "
         extra = f"  {self.message}" if self.message else ""
         act = "" if self.action == "CONTINUE" else f"  [{self.action}]"
-        return (f"t={self.t_s:7.2f}s  {self.phase:<10} {lap}  pos {p}  err {self.err_m:6.3f} m  "
-                f"{self.rate_hz:5.0f} Hz{act}{extra}")
+        return (
+            f"t={self.t_s:7.2f}s  {self.phase:<10} {lap}  pos {p}  err {self.err_m:6.3f} m  "
+            f"{self.rate_hz:5.0f} Hz{act}{extra}"
+        )
 
 
 def with_laps(pattern: Pattern, laps: int) -> Pattern:
@@ -164,10 +179,15 @@ class FlightRunner:
         self.clock = clock
         self.settings = settings or PlanSettings()
         self.controller = VelocityController(controller or ControllerConfig())
+        # lift-off is pure feed-forward (see _Climb): it uses it even under the P-only law
+        self._lift_controller = VelocityController(
+            dataclasses.replace(self.controller.config, feedforward=True)
+        )
         self.safety = safety or SafetyConfig()
         self.log = log
         self.on_status = on_status
         self.control_mode = offboard_mode_for(autopilot)
+        self._push = _immediate_setter(link)
         self.summary = FlightSummary(plan=name, log_path=str(log.path) if log else None)
         self.interrupted = asyncio.Event()
         self.in_control = False  # we command the vehicle (armed, in the offboard mode)
@@ -175,7 +195,7 @@ class FlightRunner:
         self.ended = False  # a fault ended the flight (landed, released or stopped)
         self._t0 = clock.monotonic_s()
         self._active: set[FaultKind] = set()
-        self._phase_stats: dict[str, PhaseStats] = {}
+        self._last_phase = ""
         self._cycle_s: list[float] = []
         self._ticks = 0
         self._last_status_s = -math.inf
@@ -196,7 +216,9 @@ class FlightRunner:
 
     def _start_pose_watch(self) -> None:
         if self._pose_task is None:
-            self._pose_task = asyncio.get_running_loop().create_task(self._watch_poses(), name="runner-mocap-watch")
+            self._pose_task = asyncio.get_running_loop().create_task(
+                self._watch_poses(), name="runner-mocap-watch"
+            )
 
     async def _watch_poses(self) -> None:
         try:
@@ -221,8 +243,11 @@ class FlightRunner:
 
     def _update_speed(self, p: MocapPose) -> None:
         t = p.stamp_ns * 1e-9
-        pos = (float(p.T_world_body.translation[0]), float(p.T_world_body.translation[1]),
-               float(p.T_world_body.translation[2]))
+        pos = (
+            float(p.T_world_body.translation[0]),
+            float(p.T_world_body.translation[1]),
+            float(p.T_world_body.translation[2]),
+        )
         prev = self._prev_for_speed
         if prev is None or t - prev[0] >= 0.05:  # 20 Hz finite difference: robust to mocap jitter
             if prev is not None and t > prev[0]:
@@ -313,27 +338,31 @@ class FlightRunner:
         *,
         tolerate: Action = Action.CONTINUE,
         until: Callable[[float, Vec3], bool] | None = None,
+        end_when: Callable[[float, Vec3], bool] | None = None,
+        floor_m: float | None = None,
         timeout_s: float = math.inf,
         send: bool = True,
     ) -> None:
-        """Track ``pattern`` until it is done (and ``until(t, pos)`` holds, if given).
+        """Track ``pattern`` until it is done (and ``until(t, pos)`` holds, if given), or
+        as soon as ``end_when(t, pos)`` holds.
 
         Faults whose action is at most ``tolerate`` are recorded but do not end the phase;
         HOLD faults pause the pattern. Raises _FaultExit for the others. With ``send=False``
-        nothing is sent (the autopilot flies on its own; we only supervise and log).
+        nothing is sent (the autopilot flies on its own; we only supervise and log). With
+        ``floor_m`` the tracking error is measured against the reference clamped to the floor
+        (a landing reference reaches below it to keep pressing down).
         """
         self._start_pose_watch()
-        self.controller.reset()
-        stats = self._phase_stats.get(phase)
-        if stats is None:
-            stats = self._phase_stats[phase] = PhaseStats(phase)
-            self.summary.phases.append(stats)
+        ctl = self._lift_controller if isinstance(pattern, _Climb) else self.controller
+        ctl.reset()
+        stats = self._stats_for(phase)
         period = 1.0 / self.settings.rate_hz
         clock = self.clock
         start = last = clock.monotonic_s()
         t_pat = 0.0
         frame = self.controller.config.output_frame.setpoint_frame.value
         laps = pattern.laps if pattern.laps > 1 or phase == "pattern" else 0
+        lookahead = self.safety.fence_lookahead_s if self.safety.geofence.enabled else 0.0
         while True:
             now = clock.monotonic_s()
             dt = now - last
@@ -347,31 +376,46 @@ class FlightRunner:
                 pos = (float(t[0]), float(t[1]), float(t[2]))
                 yaw = self._yaw(pose)
             ref = pattern.reference(t_pat)
+            ahead = pattern.reference(t_pat + lookahead) if lookahead > 0.0 else ref
             tel = self.link.telemetry
-            decision = supervise(self.safety, SupervisorInput(
-                now - self._t0, age, tel, self.control_mode if self.in_control else None, pos, ref.pos_m,
-                self._speed_m_s, self.interrupted.is_set(),
-            ))
+            decision = supervise(
+                self.safety,
+                SupervisorInput(
+                    now - self._t0,
+                    age,
+                    tel,
+                    self.control_mode if self.in_control else None,
+                    pos,
+                    ahead.pos_m,
+                    self._speed_m_s,
+                    self.interrupted.is_set(),
+                ),
+            )
             if decision.faults or self._active:
                 self._record(decision)
             action = decision.action
             if action > Action.HOLD and action <= tolerate:
-                action = Action.HOLD if any(f.action is Action.HOLD for f in decision.faults) else Action.CONTINUE
+                action = (
+                    Action.HOLD if any(f.action is Action.HOLD for f in decision.faults) else Action.CONTINUE
+                )
             err = math.nan
             if action is Action.CONTINUE and pos is not None:
                 t_pat += dt
                 ref = pattern.reference(t_pat)
-                out = self.controller.step(ref, pos, yaw, dt)
+                out = ctl.step(ref, pos, yaw, dt)
                 sp = out.setpoint
                 err = out.error_norm_m
+                if floor_m is not None and ref.pos_m[2] < floor_m:
+                    err = math.dist((ref.pos_m[0], ref.pos_m[1], floor_m), pos)
                 if send:
-                    self.link.set_velocity(sp)
+                    self._push(sp)
             elif action is Action.HOLD or (action is Action.CONTINUE and pos is None):
                 sp = self.controller.hold()
                 if send:
-                    self.link.set_velocity(sp)
+                    self._push(sp)
                 if pos is not None:
-                    err = math.dist(ref.pos_m, pos)
+                    rz = ref.pos_m[2] if floor_m is None else max(ref.pos_m[2], floor_m)
+                    err = math.dist((ref.pos_m[0], ref.pos_m[1], rz), pos)
             else:
                 raise _FaultExit(decision)
             cycle = time.perf_counter() - c0
@@ -382,18 +426,35 @@ class FlightRunner:
                 self._last_err = err
             if self.log is not None:
                 p = pos or (math.nan, math.nan, math.nan)
-                self.log.row((
-                    round(now - self._t0, 6), clock.time_ns(), phase, ref.lap, action.name,
-                    *ref.pos_m, ref.yaw_rad, *ref.vel_m_s, *p, yaw, age if math.isfinite(age) else -1.0,
-                    frame, *sp.vel_m_s, sp.yaw_rad if sp.yaw_rad is not None else math.nan,
-                    sp.yaw_rate_rad_s if sp.yaw_rate_rad_s is not None else math.nan, err, cycle,
-                ))
+                self.log.row(
+                    (
+                        round(now - self._t0, 6),
+                        clock.time_ns(),
+                        phase,
+                        ref.lap,
+                        action.name,
+                        *ref.pos_m,
+                        ref.yaw_rad,
+                        *ref.vel_m_s,
+                        *p,
+                        yaw,
+                        age if math.isfinite(age) else -1.0,
+                        frame,
+                        *sp.vel_m_s,
+                        sp.yaw_rad if sp.yaw_rad is not None else math.nan,
+                        sp.yaw_rate_rad_s if sp.yaw_rate_rad_s is not None else math.nan,
+                        err,
+                        cycle,
+                    )
+                )
             if now - self._last_status_s >= 0.2:
                 self._last_status_s = now
                 self._status(phase, ref.lap + 1 if laps else 0, laps, pos, action.name)
             stats.duration_s = stats.duration_s + dt if stats.samples > 1 else stats.duration_s
             finished = ref.done or (until is not None and math.isinf(pattern.duration_s))
-            if finished and (until is None or (pos is not None and until(now - start, pos))):
+            if (finished and (until is None or (pos is not None and until(now - start, pos)))) or (
+                end_when is not None and pos is not None and end_when(now - start, pos)
+            ):
                 if phase == "pattern":
                     self.summary.laps_completed += pattern.laps
                 return
@@ -401,7 +462,21 @@ class FlightRunner:
                 raise LinkTimeout(f"{phase} did not finish within {timeout_s:.0f} s", phase, timeout_s)
             await self._wait_tick(period)
 
-    def _status(self, phase: str, lap: int, laps: int, pos: Vec3 | None, action: str, message: str = "") -> None:
+    def _stats_for(self, phase: str) -> PhaseStats:
+        """The statistics entry of ``phase``: the current one if the previous phase had the same
+        name (a take-off in two steps), else a new entry (a second hold becomes ``hold_2``)."""
+        phases = self.summary.phases
+        if phases and self._last_phase == phase:
+            return phases[-1]
+        self._last_phase = phase
+        n = sum(1 for p in phases if p.name == phase or p.name.startswith(phase + "_"))
+        stats = PhaseStats(phase if n == 0 else f"{phase}_{n + 1}")
+        phases.append(stats)
+        return stats
+
+    def _status(
+        self, phase: str, lap: int, laps: int, pos: Vec3 | None, action: str, message: str = ""
+    ) -> None:
         if self.on_status is None:
             return
         n = len(self._cycle_s)
@@ -434,7 +509,9 @@ class FlightRunner:
                 if action is Action.ABORT:
                     pos, yaw = self.current_pose()
                     if self.safety.abort_hold_s > 0:
-                        await self._track(Hold(pos, yaw, self.safety.abort_hold_s), "abort_hold", tolerate=Action.ABORT)
+                        await self._track(
+                            Hold(pos, yaw, self.safety.abort_hold_s), "abort_hold", tolerate=Action.ABORT
+                        )
                     action = Action.LAND
                     continue
                 if action is Action.LAND:
@@ -469,19 +546,30 @@ class FlightRunner:
         while True:
             tel = self.link.telemetry
             if tel.heartbeat_age_s > self.safety.heartbeat_period_s + self.safety.heartbeat_timeout_s:
-                raise _FaultExit(self._fault(FaultKind.HEARTBEAT_LOST,
-                                             f"no autopilot heartbeat for {tel.heartbeat_age_s:.2f} s while landing",
-                                             Action.STOP))
+                raise _FaultExit(
+                    self._fault(
+                        FaultKind.HEARTBEAT_LOST,
+                        f"no autopilot heartbeat for {tel.heartbeat_age_s:.2f} s while landing",
+                        Action.STOP,
+                    )
+                )
             if not tel.armed:
                 self.airborne = False
                 return
             if watch_mode is not None and tel.mode is not watch_mode:
-                raise _FaultExit(self._fault(FaultKind.PILOT_TAKEOVER,
-                                             f"mode changed from {watch_mode.value} to {tel.mode.value} while landing",
-                                             Action.RELEASE))
+                raise _FaultExit(
+                    self._fault(
+                        FaultKind.PILOT_TAKEOVER,
+                        f"mode changed from {watch_mode.value} to {tel.mode.value} while landing",
+                        Action.RELEASE,
+                    )
+                )
             if self.clock.monotonic_s() > deadline:
-                raise LinkTimeout(f"the vehicle did not land and disarm within {self.settings.landed_timeout_s:.0f} s",
-                                  "landed", self.settings.landed_timeout_s)
+                raise LinkTimeout(
+                    f"the vehicle did not land and disarm within {self.settings.landed_timeout_s:.0f} s",
+                    "landed",
+                    self.settings.landed_timeout_s,
+                )
             await self.clock.sleep(0.05)
 
     # ------------------------------------------------------------------ phases
@@ -502,8 +590,9 @@ class FlightRunner:
         if pose is not None:
             t = pose.T_world_body.translation
             pos = (float(t[0]), float(t[1]), float(t[2]))
-        problems = preflight_problems(self.safety, self.body, tuple(self.mocap.bodies()), pose is not None,
-                                      self.link.telemetry, pos)
+        problems = preflight_problems(
+            self.safety, self.body, tuple(self.mocap.bodies()), pose is not None, self.link.telemetry, pos
+        )
         if problems:
             raise SafetyAbort("preflight", "preflight failed: " + "; ".join(problems))
         logger.info("preflight ok: body %r at %s", self.body, pos)
@@ -542,12 +631,22 @@ class FlightRunner:
                 left = deadline - self.clock.monotonic_s()
                 if left <= 0:
                     raise LinkTimeout(
-                        f"the pilot did not arm and switch to {mode.value} within {self.settings.arm_timeout_s:.0f} s; "
-                        "arm from the transmitter or run with --arm", "armed", self.settings.arm_timeout_s)
+                        f"the pilot did not arm and switch to {mode.value} "
+                        f"within {self.settings.arm_timeout_s:.0f} s; "
+                        "arm from the transmitter or run with --arm",
+                        "armed",
+                        self.settings.arm_timeout_s,
+                    )
                 pose, _ = self._pose(self.clock.monotonic_s())
                 pos = None if pose is None else tuple(float(x) for x in pose.T_world_body.translation)
-                self._status("wait_pilot", 0, 0, pos, "CONTINUE",  # type: ignore[arg-type]
-                             f"arm and switch to {mode.value}: {left:4.0f} s left")
+                self._status(
+                    "wait_pilot",
+                    0,
+                    0,
+                    pos,
+                    "CONTINUE",  # type: ignore[arg-type]
+                    f"arm and switch to {mode.value}: {left:4.0f} s left",
+                )
                 await self._keep_streaming(0.2)
         self.in_control = True
         logger.info("armed in %s", mode.value)
@@ -571,8 +670,13 @@ class FlightRunner:
             # climb: pause the stream, command the take-off, watch (no setpoints) until near the height.
             await self.link.stop_setpoint_stream()
             await self.link.takeoff(max(0.2, height_m - pos[2]))
-            await self._track(_Climb(pos, yaw, 0.0), "takeoff", send=False, timeout_s=60.0,
-                              until=lambda _t, p: p[2] >= height_m - 0.1)
+            await self._track(
+                _Climb(pos, yaw, 0.0),
+                "takeoff",
+                send=False,
+                timeout_s=60.0,
+                until=lambda _t, p: p[2] >= height_m - 0.1,
+            )
             await self.link.start_setpoint_stream(max(self.settings.rate_hz, 20.0))
             pos = self.current_pose()[0]
         else:
@@ -591,8 +695,9 @@ class FlightRunner:
         The motors spin up for a few seconds after arming; the climb reference waits for them
         (it starts from the measured height while the vehicle is still on the ground).
         """
-        await self._track(_Climb(start, yaw, climb, self), "takeoff", until=lambda _t, p: p[2] >= z_m,
-                          timeout_s=30.0)
+        await self._track(
+            _Climb(start, yaw, climb, self), "takeoff", until=lambda _t, p: p[2] >= z_m, timeout_s=30.0
+        )
 
     async def hold(self, duration_s: float, pos_m: Vec3 | None = None, yaw_rad: float | None = None) -> None:
         """Hold ``pos_m`` (default: the current reference end / position) for ``duration_s``; blocks."""
@@ -603,14 +708,17 @@ class FlightRunner:
 
     def _here(self, pos_m: Vec3 | None, yaw_rad: float | None) -> tuple[Vec3, float]:
         cur, cyaw = self.current_pose()
-        return (pos_m or self._last_target or cur), (yaw_rad if yaw_rad is not None else
-                                                     (self._last_yaw if self._last_yaw is not None else cyaw))
+        return (pos_m or self._last_target or cur), (
+            yaw_rad if yaw_rad is not None else (self._last_yaw if self._last_yaw is not None else cyaw)
+        )
 
     _last_target: Vec3 | None = None
     _last_yaw: float | None = None
 
     async def goto(self, pos_m: Vec3, yaw_rad: float | None = None, speed_m_s: float | None = None) -> None:
-        """Fly a straight line to ``pos_m`` (world ENU), then turn in place to ``yaw_rad``; blocks until there."""
+        """Fly a straight line to ``pos_m`` (world ENU), then turn in place to ``yaw_rad``.
+
+        Blocks until there."""
         start, syaw = self._here(None, None)
         end_yaw = None if yaw_rad is None else syaw + math.remainder(yaw_rad - syaw, 2 * math.pi)
         dist = math.dist(start, pos_m)
@@ -622,8 +730,15 @@ class FlightRunner:
             assert end_yaw is not None
             pat = PiecewisePattern("goto", [Turn(start, syaw, end_yaw, 3.0)])
         else:
-            pat = Waypoints([start, pos_m], speed_m_s or self.settings.transit_speed_m_s, self.settings.accel_m_s2,
-                            syaw, end_yaw_rad=end_yaw, turn_s=3.0, name="goto")
+            pat = Waypoints(
+                [start, pos_m],
+                speed_m_s or self.settings.transit_speed_m_s,
+                self.settings.accel_m_s2,
+                syaw,
+                end_yaw_rad=end_yaw,
+                turn_s=3.0,
+                name="goto",
+            )
         await self._run(lambda: self._track(pat, "goto"))
         self._remember(pat)
 
@@ -645,8 +760,9 @@ class FlightRunner:
             bad = pattern_in_fence(pattern, self.safety)
             if bad is not None:
                 raise ValueError(
-                    f"{pattern.name} leaves the geofence {self.safety.geofence.describe()} at t={bad.t_s:.1f} s, "
-                    f"position ({bad.pos_m[0]:.2f}, {bad.pos_m[1]:.2f}, {bad.pos_m[2]:.2f}); shrink the pattern"
+                    f"{pattern.name} leaves the geofence {self.safety.geofence.describe()} "
+                    f"at t={bad.t_s:.1f} s, position ({bad.pos_m[0]:.2f}, {bad.pos_m[1]:.2f}, "
+                    f"{bad.pos_m[2]:.2f}); shrink the pattern"
                 )
         first = pattern.reference(0.0)
         await self.goto(first.pos_m, first.yaw_rad)
@@ -663,9 +779,15 @@ class FlightRunner:
         floor = self.settings.floor_m
         if self.link.telemetry.armed and pos[2] > floor + 0.12:
             pat = Land(pos, self.settings.descent_m_s, floor, 0.3, self.settings.accel_m_s2, yaw)
-            await self._track(pat, "land", tolerate=tolerate,
-                              until=lambda _t, p: p[2] < floor + 0.12 or self._landed())
-            # the reference keeps pushing below the floor until handed over
+            # the reference reaches below the floor to keep pressing down; the phase ends near
+            # the floor (or on touchdown) and the autopilot's LAND finishes the touchdown
+            await self._track(
+                pat,
+                "land",
+                tolerate=tolerate,
+                floor_m=floor,
+                end_when=lambda _t, p: p[2] < floor + 0.12 or self._landed(),
+            )
         if self.link.telemetry.armed:
             self.in_control = False
             if not self._landed():
@@ -686,16 +808,23 @@ class FlightRunner:
         while self.link.telemetry.armed:
             tel = self.link.telemetry
             if tel.heartbeat_age_s > self.safety.heartbeat_period_s + self.safety.heartbeat_timeout_s:
-                raise _FaultExit(self._fault(FaultKind.HEARTBEAT_LOST,
-                                             f"no autopilot heartbeat for {tel.heartbeat_age_s:.2f} s while landing",
-                                             Action.STOP))
+                raise _FaultExit(
+                    self._fault(
+                        FaultKind.HEARTBEAT_LOST,
+                        f"no autopilot heartbeat for {tel.heartbeat_age_s:.2f} s while landing",
+                        Action.STOP,
+                    )
+                )
             if tel.landed_state is LandedState.ON_GROUND and not disarm_sent:
                 disarm_sent = True
                 with contextlib.suppress(CommandRejected, LinkTimeout):
                     await self.link.disarm()
             if self.clock.monotonic_s() > deadline:
-                raise LinkTimeout(f"the vehicle did not land and disarm within {self.settings.landed_timeout_s:.0f} s",
-                                  "disarmed", self.settings.landed_timeout_s)
+                raise LinkTimeout(
+                    f"the vehicle did not land and disarm within {self.settings.landed_timeout_s:.0f} s",
+                    "disarmed",
+                    self.settings.landed_timeout_s,
+                )
             await self.clock.sleep(0.05)
 
     # ------------------------------------------------------------------ summary
@@ -719,6 +848,19 @@ class FlightRunner:
             self._pose_task = None
 
 
+def _immediate_setter(link: VehicleLink) -> Callable[[VelocitySetpoint], None]:
+    """``link.set_velocity`` that puts the setpoint on the wire at once when the backend can
+    (``send_now``, pymavlink), so the setpoint follows the mocap sample without waiting for the
+    stream's next tick; the plain replace-the-streamed-setpoint call otherwise."""
+    try:
+        params = inspect.signature(link.set_velocity).parameters
+    except (TypeError, ValueError):  # pragma: no cover - builtins
+        return link.set_velocity
+    if "send_now" in params:
+        return functools.partial(link.set_velocity, send_now=True)  # type: ignore[call-arg]
+    return link.set_velocity
+
+
 class _Climb:
     """Lift-off reference: stay over ``start`` and climb at ``climb_m_s`` open-ended."""
 
@@ -737,7 +879,9 @@ class _Climb:
         if self.runner is not None:
             with contextlib.suppress(MocapBodyMissing):
                 z = self.runner.current_pose()[0][2]
-        return Reference(t_s, (self.start[0], self.start[1], z), (0.0, 0.0, self.climb), self.yaw, 0.0, 0, False)
+        return Reference(
+            t_s, (self.start[0], self.start[1], z), (0.0, 0.0, self.climb), self.yaw, 0.0, 0, False
+        )
 
 
 # ---------------------------------------------------------------------- one-call entry point
@@ -771,6 +915,7 @@ async def fly_plan(
         LinkError, ConfigError: as raised by the link and the plan.
     """
     clock = clock or WallClock()
+    plan = plan.with_lab_defaults(lab)
     pattern = plan.build_pattern()
     async with contextlib.AsyncExitStack() as stack:
         if link is None:
@@ -778,19 +923,35 @@ async def fly_plan(
 
             link = await stack.enter_async_context(open_link(lab.link, lab.vehicle.autopilot, clock))  # type: ignore[type-var]
         if mocap is None:
-            from flightkit.mocap import open_mocap  # type: ignore[attr-defined]
-
-            mocap = await stack.enter_async_context(open_mocap(lab, clock))
+            mocap = await stack.enter_async_context(open_lab_mocap(lab, clock))
         assert link is not None and mocap is not None
         log = None
         if log_path != "":
             path = Path(log_path) if log_path else _default_log_path(plan)
-            log = FlightLog(path, {"plan": plan.name, "source": plan.source_path, "pattern": plan.pattern.__class__.__name__,
-                                   "controller": _jsonable(plan.controller), "autopilot": lab.vehicle.autopilot.value,
-                                   "body": lab.mocap.body})
-        runner = FlightRunner(link, mocap, body=lab.mocap.body, autopilot=lab.vehicle.autopilot, clock=clock,
-                              settings=plan.settings, controller=plan.controller, safety=plan.safety, log=log,
-                              on_status=on_status, name=plan.name)
+            log = FlightLog(
+                path,
+                {
+                    "plan": plan.name,
+                    "source": plan.source_path,
+                    "pattern": plan.pattern.__class__.__name__,
+                    "controller": _jsonable(plan.controller),
+                    "autopilot": lab.vehicle.autopilot.value,
+                    "body": lab.mocap.body,
+                },
+            )
+        runner = FlightRunner(
+            link,
+            mocap,
+            body=lab.mocap.body,
+            autopilot=lab.vehicle.autopilot,
+            clock=clock,
+            settings=plan.settings,
+            controller=plan.controller,
+            safety=plan.safety,
+            log=log,
+            on_status=on_status,
+            name=plan.name,
+        )
         sig_ctx = runner.signals_land() if handle_signals else contextlib.nullcontext()
         try:
             with sig_ctx:
@@ -813,8 +974,11 @@ async def _fly_sequence(runner: FlightRunner, plan: Plan, pattern: Pattern, arm:
     if plan.safety.check_plan_in_fence:
         bad = pattern_in_fence(pattern, plan.safety)
         if bad is not None:
-            raise SafetyAbort("preflight", f"preflight failed: the {pattern.name} leaves the geofence "
-                              f"{plan.safety.geofence.describe()} at t={bad.t_s:.1f} s; shrink it or move the fence")
+            raise SafetyAbort(
+                "preflight",
+                f"preflight failed: the {pattern.name} leaves the geofence "
+                f"{plan.safety.geofence.describe()} at t={bad.t_s:.1f} s; shrink it or move the fence",
+            )
     await runner.preflight()
     await runner.start(arm)
     try:
@@ -826,8 +990,32 @@ async def _fly_sequence(runner: FlightRunner, plan: Plan, pattern: Pattern, arm:
     except (asyncio.CancelledError, KeyboardInterrupt):
         if runner.airborne and not runner.ended:
             runner.interrupt()
-            await asyncio.shield(runner.land())
+            with contextlib.suppress(SafetyAbort):  # the landing reports "interrupted"; the caller cancelled
+                await asyncio.shield(runner.land())
         raise
+
+
+def open_lab_mocap(lab: LabConfig, clock: Clock) -> MocapSource:
+    """The mocap source ``lab.mocap`` names, not yet started (enter it with ``async with``).
+
+    Uses :func:`flightkit.mocap.open_mocap` (bus or motioncapture, per ``lab.mocap.source``)
+    with the vehicle's bus namespace (``lab.vehicle.namespace``).
+
+    Raises:
+        MocapError: no mocap backend is available; pass a source (e.g. a
+            :class:`~flightkit.mocap.simulated.SimMocapSource`) instead.
+    """
+    import flightkit.mocap as mocap_pkg
+
+    opener = getattr(mocap_pkg, "open_mocap", None)
+    if opener is None:
+        raise MocapError(
+            f"no mocap backend for mocap.source = {lab.mocap.source.value!r} is available in this install; "
+            "pass a MocapSource (mocap=...) or fly the simulator with --connect sim"
+        )
+    from flightkit.bus.keys import Keys
+
+    return cast(MocapSource, opener(lab.mocap, lab.bus, Keys(lab.vehicle.namespace), clock))
 
 
 def _default_log_path(plan: Plan) -> Path:

@@ -42,7 +42,7 @@ from trajectories.base import Pattern, Vec3
 from trajectories.controller import ControllerConfig
 from trajectories.flightlog import FlightLog, FlightSummary
 from trajectories.plan import PlanSettings
-from trajectories.runner import FlightRunner, Status
+from trajectories.runner import FlightRunner, Status, open_lab_mocap
 from trajectories.supervisor import SafetyConfig
 
 __all__ = ["Flight"]
@@ -108,7 +108,9 @@ class Flight:
         return self.runner.summary
 
     async def __aenter__(self) -> Self:
-        """Connect, check preflight, and arm (or wait for the pilot). Blocks until armed in OFFBOARD/GUIDED."""
+        """Connect, check preflight, and arm (or wait for the pilot).
+
+        Blocks until armed in OFFBOARD/GUIDED."""
         stack = self._stack
         try:
             link = self._link
@@ -116,19 +118,32 @@ class Flight:
                 from flightkit.link import open_link
 
                 link = await stack.enter_async_context(  # type: ignore[type-var]
-                    open_link(self.lab.link, self.lab.vehicle.autopilot, self.clock))
+                    open_link(self.lab.link, self.lab.vehicle.autopilot, self.clock)
+                )
             mocap = self._mocap
             if mocap is None:
-                from flightkit.mocap import open_mocap  # type: ignore[attr-defined]
-
-                mocap = await stack.enter_async_context(open_mocap(self.lab, self.clock))
+                mocap = await stack.enter_async_context(open_lab_mocap(self.lab, self.clock))
             if self._log_path is not None:
-                self._log = FlightLog(self._log_path, {"plan": self._name, "autopilot": self.lab.vehicle.autopilot.value,
-                                                       "body": self.lab.mocap.body})
+                self._log = FlightLog(
+                    self._log_path,
+                    {
+                        "plan": self._name,
+                        "autopilot": self.lab.vehicle.autopilot.value,
+                        "body": self.lab.mocap.body,
+                    },
+                )
             self._runner = FlightRunner(
-                link, mocap, body=self.lab.mocap.body, autopilot=self.lab.vehicle.autopilot, clock=self.clock,
-                settings=self._settings, controller=self._controller, safety=self._safety, log=self._log,
-                on_status=self._on_status, name=self._name,
+                link,
+                mocap,
+                body=self.lab.mocap.body,
+                autopilot=self.lab.vehicle.autopilot,
+                clock=self.clock,
+                settings=self._settings,
+                controller=self._controller,
+                safety=self._safety,
+                log=self._log,
+                on_status=self._on_status,
+                name=self._name,
             )
             if self._handle_signals:
                 stack.enter_context(self._runner.signals_land())

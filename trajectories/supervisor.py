@@ -105,8 +105,12 @@ class Fault:
     action: Action
 
     def to_dict(self) -> dict[str, object]:
-        return {"time_s": round(self.time_s, 3), "kind": self.kind.value, "message": self.message,
-                "action": self.action.name}
+        return {
+            "time_s": round(self.time_s, 3),
+            "kind": self.kind.value,
+            "message": self.message,
+            "action": self.action.name,
+        }
 
 
 @dataclass(frozen=True, slots=True)
@@ -122,8 +126,11 @@ class Geofence:
         for i, axis in enumerate("xyz"):
             if obj.min_m[i] >= obj.max_m[i]:
                 raise ConfigError(
-                    path, f"{key}.min_m" if key else "min_m", f"{axis} min {obj.min_m[i]} is not below max {obj.max_m[i]}",
-                    "give min_m below max_m on every axis", obj.min_m,
+                    path,
+                    f"{key}.min_m" if key else "min_m",
+                    f"{axis} min {obj.min_m[i]} is not below max {obj.max_m[i]}",
+                    "give min_m below max_m on every axis",
+                    obj.min_m,
                 )
 
     def contains(self, p: Sequence[float], margin_m: float = 0.0) -> bool:
@@ -144,22 +151,35 @@ class SafetyConfig:
 
     mocap_hold_after_s: float = setting(0.2, min=0.005, max=10.0, help="mocap age that triggers a hold")
     mocap_land_after_s: float = setting(1.0, min=0.01, max=30.0, help="mocap age that triggers a landing")
-    heartbeat_timeout_s: float = setting(1.0, min=0.1, max=30.0, help="heartbeats missing this long stop the flight")
-    heartbeat_period_s: float = setting(1.0, min=0.0, max=10.0, help="the autopilot's heartbeat interval (1 Hz)")
+    heartbeat_timeout_s: float = setting(
+        1.0, min=0.1, max=30.0, help="heartbeats missing this long stop the flight"
+    )
+    heartbeat_period_s: float = setting(
+        1.0, min=0.0, max=10.0, help="the autopilot's heartbeat interval (1 Hz)"
+    )
     battery_min_pct: float = setting(20.0, min=0.0, max=100.0, help="land below this charge (0 = off)")
     battery_min_v: float = setting(0.0, min=0.0, max=100.0, help="land below this voltage (0 = off)")
     max_speed_m_s: float = setting(2.0, min=0.1, max=50.0, help="measured speed that aborts the flight")
     abort_hold_s: float = setting(2.0, min=0.0, max=60.0, help="hold this long after an abort, then land")
     geofence: Geofence = setting(default_factory=Geofence, help="the box the vehicle must stay in")
+    fence_lookahead_s: float = setting(
+        0.5,
+        min=0.0,
+        max=10.0,
+        help="check the reference this far ahead, so a breach stops the vehicle inside",
+    )
     check_plan_in_fence: bool = setting(True, help="refuse plans whose references leave the geofence")
 
     @staticmethod
     def _check(obj: SafetyConfig, path: str, key: str) -> None:
         if obj.mocap_land_after_s <= obj.mocap_hold_after_s:
             raise ConfigError(
-                path, f"{key}.mocap_land_after_s" if key else "mocap_land_after_s",
-                f"{obj.mocap_land_after_s} s is not longer than mocap_hold_after_s = {obj.mocap_hold_after_s} s",
-                "land only after holding: make mocap_land_after_s the larger", obj.mocap_land_after_s,
+                path,
+                f"{key}.mocap_land_after_s" if key else "mocap_land_after_s",
+                f"{obj.mocap_land_after_s} s is not longer than "
+                f"mocap_hold_after_s = {obj.mocap_hold_after_s} s",
+                "land only after holding: make mocap_land_after_s the larger",
+                obj.mocap_land_after_s,
             )
 
 
@@ -174,7 +194,8 @@ class SupervisorInput:
         control_mode: the mode we expect while we fly the vehicle (OFFBOARD or GUIDED), or None
             before we have control (takeover and disarm are not checked then).
         pos_m: measured position (world ENU), None when unknown.
-        ref_pos_m: reference position (world ENU), None when not flying a reference.
+        ref_pos_m: reference position (world ENU), None when not flying a reference; the runner
+            gives the reference ``fence_lookahead_s`` ahead, so a breach is seen before it is flown.
         speed_m_s: measured speed (from mocap), NaN when unknown.
         interrupted: Ctrl-C / SIGTERM received.
     """
@@ -218,24 +239,32 @@ def supervise(cfg: SafetyConfig, inp: SupervisorInput) -> Decision:
         faults.append(Fault(t, kind, msg, ACTION_OF[kind]))
 
     if tel.heartbeat_age_s > cfg.heartbeat_period_s + cfg.heartbeat_timeout_s:
-        add(FaultKind.HEARTBEAT_LOST,
+        add(
+            FaultKind.HEARTBEAT_LOST,
             f"no autopilot heartbeat for {tel.heartbeat_age_s:.2f} s "
             f"(expected every {cfg.heartbeat_period_s:g} s, lost after {cfg.heartbeat_timeout_s:g} s more); "
-            "stopped, the autopilot's own failsafe is in charge")
+            "stopped, the autopilot's own failsafe is in charge",
+        )
     elif inp.control_mode is not None:
         if not tel.armed:
             add(FaultKind.DISARMED, "the vehicle was disarmed during the flight; script ended")
         elif tel.mode is not inp.control_mode:
-            add(FaultKind.PILOT_TAKEOVER,
+            add(
+                FaultKind.PILOT_TAKEOVER,
                 f"mode changed from {inp.control_mode.value} to {tel.mode.value}; "
-                "the pilot has the vehicle, script ended without fighting the pilot")
+                "the pilot has the vehicle, script ended without fighting the pilot",
+            )
     if inp.mocap_age_s > cfg.mocap_land_after_s:
-        add(FaultKind.MOCAP_LOST,
+        add(
+            FaultKind.MOCAP_LOST,
             f"no valid mocap pose for {inp.mocap_age_s:.2f} s (limit {cfg.mocap_land_after_s:g} s); "
-            "landing with the autopilot")
+            "landing with the autopilot",
+        )
     elif inp.mocap_age_s > cfg.mocap_hold_after_s:
-        add(FaultKind.MOCAP_STALE,
-            f"mocap pose is {inp.mocap_age_s:.2f} s old (limit {cfg.mocap_hold_after_s:g} s); holding")
+        add(
+            FaultKind.MOCAP_STALE,
+            f"mocap pose is {inp.mocap_age_s:.2f} s old (limit {cfg.mocap_hold_after_s:g} s); holding",
+        )
     pct = tel.battery.remaining_pct
     volts = tel.battery.voltage_v
     if cfg.battery_min_pct > 0.0 and not math.isnan(pct) and pct < cfg.battery_min_pct:
@@ -246,14 +275,22 @@ def supervise(cfg: SafetyConfig, inp: SupervisorInput) -> Decision:
         add(FaultKind.INTERRUPTED, "interrupted (Ctrl-C or SIGTERM); landing")
     fence = cfg.geofence
     if inp.pos_m is not None and not fence.contains(inp.pos_m):
-        add(FaultKind.GEOFENCE_POSITION,
-            f"position {_fmt(inp.pos_m)} is outside the geofence {fence.describe()}; holding, then landing")
+        add(
+            FaultKind.GEOFENCE_POSITION,
+            f"position {_fmt(inp.pos_m)} is outside the geofence {fence.describe()}; holding, then landing",
+        )
     if inp.ref_pos_m is not None and not fence.contains(inp.ref_pos_m):
-        add(FaultKind.GEOFENCE_REFERENCE,
-            f"reference {_fmt(inp.ref_pos_m)} is outside the geofence {fence.describe()}; holding, then landing")
+        add(
+            FaultKind.GEOFENCE_REFERENCE,
+            f"reference {_fmt(inp.ref_pos_m)} is outside the geofence {fence.describe()}; "
+            "holding, then landing",
+        )
     if not math.isnan(inp.speed_m_s) and inp.speed_m_s > cfg.max_speed_m_s:
-        add(FaultKind.OVERSPEED,
-            f"measured speed {inp.speed_m_s:.2f} m/s is above {cfg.max_speed_m_s:g} m/s; holding, then landing")
+        add(
+            FaultKind.OVERSPEED,
+            f"measured speed {inp.speed_m_s:.2f} m/s is above {cfg.max_speed_m_s:g} m/s; "
+            "holding, then landing",
+        )
     if not faults:
         return _OK
     return Decision(max(f.action for f in faults), tuple(faults))

@@ -11,14 +11,21 @@ class Takeoff(PiecewisePattern):
     """Climb vertically from ``start_m`` to ``height_m`` at ``climb_m_s`` (ramped within ``accel_m_s2``)."""
 
     def __init__(
-        self, start_m: Vec3, height_m: float, climb_m_s: float = 0.3, accel_m_s2: float = 0.5, yaw_rad: float = 0.0
+        self,
+        start_m: Vec3,
+        height_m: float,
+        climb_m_s: float = 0.3,
+        accel_m_s2: float = 0.5,
+        yaw_rad: float = 0.0,
     ) -> None:
         if not climb_m_s > 0.0:
             raise ValueError(f"takeoff: climb rate must be positive, got {climb_m_s} m/s")
         top = (float(start_m[0]), float(start_m[1]), float(height_m))
         start = (float(start_m[0]), float(start_m[1]), float(start_m[2]))
         if top[2] <= start[2]:
-            raise ValueError(f"takeoff: target height {height_m} m is not above the start height {start[2]:.2f} m")
+            raise ValueError(
+                f"takeoff: target height {height_m} m is not above the start height {start[2]:.2f} m"
+            )
         self.height_m = float(height_m)
         super().__init__("takeoff", [Move(start, top, climb_m_s, accel_m_s2, float(yaw_rad))], 1)
 

@@ -338,6 +338,8 @@ class _Stream:
     started_s: float
     thread: threading.Thread
     stop: threading.Event
+    sent_at_s: float = -math.inf  # last setpoint on the wire (stream thread or send_now)
+    pushed_at_s: float = -math.inf  # last setpoint sent by set_velocity(send_now=True)
 
 
 class _TransportWriter:
@@ -1074,8 +1076,14 @@ class MavlinkLink:
         self._send_setpoint(encode_velocity_setpoint(VelocitySetpoint.zero(stream.setpoint.frame)))
         logger.info("setpoint stream stopped")
 
-    def set_velocity(self, setpoint: VelocitySetpoint) -> None:
+    def set_velocity(self, setpoint: VelocitySetpoint, *, send_now: bool = False) -> None:
         """Replace the streamed setpoint; returns immediately.
+
+        With ``send_now=True`` the setpoint also goes on the wire at once, from the calling
+        thread (a control loop driven by mocap then adds no stream-period delay), unless a
+        setpoint went out less than a quarter of a stream period ago; the stream thread skips
+        its tick when a setpoint went out within the last period, so the rate on the wire stays
+        about max(stream rate, caller rate).
 
         Raises:
             SetpointError: beyond the hard safety limits (see HARD_MAX_*).
@@ -1089,7 +1097,12 @@ class MavlinkLink:
         # One attribute write each; the stream thread reads them without a lock (fields first).
         stream.fields = fields
         stream.setpoint = setpoint
-        stream.set_at_s = self._clock.monotonic_s()
+        now = self._clock.monotonic_s()
+        stream.set_at_s = now
+        if send_now and now - stream.sent_at_s >= 0.25 / stream.rate_hz:
+            stream.sent_at_s = stream.pushed_at_s = now
+            self._send_setpoint(fields)
+            self._setpoints_sent += 1
 
     def _stream_loop(self) -> None:
         stream = self._stream
@@ -1118,10 +1131,15 @@ class MavlinkLink:
                     stale_logged = True
                 self._send_setpoint(stops[stream.setpoint.frame])
                 self._stops_sent += 1
+                stream.sent_at_s = now
+                self._setpoints_sent += 1
+            elif now - stream.pushed_at_s >= period * 0.9:  # no send_now within the last period
+                stale_logged = False
+                stream.sent_at_s = now
+                self._send_setpoint(stream.fields)
+                self._setpoints_sent += 1
             else:
                 stale_logged = False
-                self._send_setpoint(stream.fields)
-            self._setpoints_sent += 1
             next_s += period
             now = clock.monotonic_s()
             if next_s < now - period:  # fell behind by more than a period (e.g. suspended): resync

@@ -37,7 +37,9 @@ def test_p_only_law_ignores_reference_velocity_and_yaw_rate() -> None:
     assert out.vel_world_m_s == (0.0, 0.0, 0.0)
     assert out.setpoint.yaw_rate_rad_s == 0.0
     ff = world(feedforward=True).step(ref(vel=(0.5, 0.0, 0.0), rate=0.3), (0.0, 0.0, 1.0), 0.0, 0.01)
-    assert ff.vel_world_m_s == pytest.approx((0.5, 0.0, 0.0)) and ff.setpoint.yaw_rate_rad_s == pytest.approx(0.3)
+    assert ff.vel_world_m_s == pytest.approx((0.5, 0.0, 0.0)) and ff.setpoint.yaw_rate_rad_s == pytest.approx(
+        0.3
+    )
 
 
 def test_limits_keep_horizontal_direction_and_clip_vertical() -> None:
@@ -85,8 +87,12 @@ def test_yaw_setpoint_mode_sends_wrapped_heading() -> None:
     assert out.setpoint.yaw_rad == pytest.approx(3.0)
     assert out.setpoint.yaw_rate_rad_s is None
     with pytest.raises(ConfigError, match="body frame"):
-        load_section(ControllerConfig, {"yaw_control": "setpoint", "output_frame": "body"}, path="p.toml",
-                     prefix="controller")
+        load_section(
+            ControllerConfig,
+            {"yaw_control": "setpoint", "output_frame": "body"},
+            path="p.toml",
+            prefix="controller",
+        )
 
 
 def test_integral_removes_steady_bias_and_does_not_wind_up() -> None:
@@ -122,7 +128,7 @@ def _simulate(feedforward: bool) -> float:
         for i in range(3):
             v[i] += (out.vel_world_m_s[i] - v[i]) * dt / tau
             p[i] += v[i] * dt
-        errs.append(out.error_norm_m ** 2)
+        errs.append(out.error_norm_m**2)
         t += dt
     return math.sqrt(sum(errs) / len(errs))
 

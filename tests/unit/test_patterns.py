@@ -42,14 +42,20 @@ def sample(p: Pattern, dt: float = DT) -> dict[str, np.ndarray]:
 def lab_patterns() -> dict[str, Pattern]:
     return {
         "circle": Circle(radius_m=1.0, period_s=40.0, laps=2, height_m=1.5),
-        "circle_cw_tangent": Circle(radius_m=0.5, speed_m_s=0.4, laps=3, clockwise=True, yaw_mode=YawMode.TRAVEL),
+        "circle_cw_tangent": Circle(
+            radius_m=0.5, speed_m_s=0.4, laps=3, clockwise=True, yaw_mode=YawMode.TRAVEL
+        ),
         "rectangle": Rectangle(rectangle_corners((0, 0), (2, 1)), 1.5, 0.1, 0.2, 5.0, laps=2),
         "rectangle_cw_outward": Rectangle(
             [(0, 0), (0, 1), (2, 1), (2, 0)], 1.0, 0.3, 0.5, 2.0, laps=2, yaw_mode=YawMode.OUTWARD
         ),
         "lawnmower": Lawnmower((-1, -0.5), (2, 1), 0.5, 1.5, 0.1, 0.2, 5.0, laps=2),
-        "lawnmower_fixed": Lawnmower((0, 0), (2, 1), 0.5, 1.5, 0.2, 0.2, 5.0, yaw_mode=YawMode.FIXED, fixed_yaw_rad=3.0),
-        "waypoints": Waypoints([(0, 0, 1), (1, 0, 1), (1, 1, 1.5), (0, 0, 1)], 0.3, 0.3, 0.0, YawMode.TRAVEL, 2.0),
+        "lawnmower_fixed": Lawnmower(
+            (0, 0), (2, 1), 0.5, 1.5, 0.2, 0.2, 5.0, yaw_mode=YawMode.FIXED, fixed_yaw_rad=3.0
+        ),
+        "waypoints": Waypoints(
+            [(0, 0, 1), (1, 0, 1), (1, 1, 1.5), (0, 0, 1)], 0.3, 0.3, 0.0, YawMode.TRAVEL, 2.0
+        ),
         "takeoff": Takeoff((0.2, -0.1, 0.0), 1.5, 0.3, 0.5, 1.0),
         "land": Land((0.2, -0.1, 1.5), 0.3),
         "hold": Hold((0.0, 0.0, 1.0), 2.0, 3.0),
@@ -96,7 +102,9 @@ def test_speed_and_acceleration_limits(pattern: Pattern, speed: float, accel: fl
     assert dv_tangential.max() <= accel + 1e-6  # ramps instead of jumps
 
 
-@pytest.mark.parametrize("name", ["circle", "circle_cw_tangent", "rectangle", "rectangle_cw_outward", "lawnmower"])
+@pytest.mark.parametrize(
+    "name", ["circle", "circle_cw_tangent", "rectangle", "rectangle_cw_outward", "lawnmower"]
+)
 def test_laps_close(name: str) -> None:
     p = lab_patterns()[name]
     assert p.laps >= 2
@@ -115,7 +123,9 @@ def test_laps_close(name: str) -> None:
 
 
 def test_circle_geometry_and_inward_yaw() -> None:
-    c = Circle(centre_m=(0.5, -0.2), radius_m=1.0, period_s=40.0, laps=2, height_m=1.5, start_angle_rad=math.pi)
+    c = Circle(
+        centre_m=(0.5, -0.2), radius_m=1.0, period_s=40.0, laps=2, height_m=1.5, start_angle_rad=math.pi
+    )
     r0 = c.reference(0.0)
     assert r0.pos_m == pytest.approx((-0.5, -0.2, 1.5))
     assert r0.yaw_rad == pytest.approx(0.0)  # at (-1, 0) from the centre, looking at it = +x
@@ -136,13 +146,25 @@ def test_circle_geometry_and_inward_yaw() -> None:
 @pytest.mark.parametrize("mode", list(YawMode))
 @pytest.mark.parametrize("clockwise", [False, True])
 def test_circle_yaw_modes(mode: YawMode, clockwise: bool) -> None:
-    c = Circle(radius_m=0.8, speed_m_s=0.5, laps=1, clockwise=clockwise, yaw_mode=mode, fixed_yaw_rad=2.5,
-               start_angle_rad=0.3)
+    c = Circle(
+        radius_m=0.8,
+        speed_m_s=0.5,
+        laps=1,
+        clockwise=clockwise,
+        yaw_mode=mode,
+        fixed_yaw_rad=2.5,
+        start_angle_rad=0.3,
+    )
     for t in np.linspace(0.5, c.duration_s - 0.5, 17):
         r = c.reference(float(t))
         th = math.atan2(r.pos_m[1], r.pos_m[0])
         travel = math.atan2(r.vel_m_s[1], r.vel_m_s[0])
-        want = {YawMode.INWARD: th + math.pi, YawMode.OUTWARD: th, YawMode.TRAVEL: travel, YawMode.FIXED: 2.5}[mode]
+        want = {
+            YawMode.INWARD: th + math.pi,
+            YawMode.OUTWARD: th,
+            YawMode.TRAVEL: travel,
+            YawMode.FIXED: 2.5,
+        }[mode]
         assert math.remainder(r.yaw_rad - want, 2 * math.pi) == pytest.approx(0.0, abs=1e-9)
         # clockwise means negative angular velocity about z
         cross = r.pos_m[0] * r.vel_m_s[1] - r.pos_m[1] * r.vel_m_s[0]
@@ -179,7 +201,9 @@ def test_lawnmower_lanes_and_travel_yaw() -> None:
     s = sample(lm, 0.02)
     for i in np.flatnonzero(np.linalg.norm(s["vel"], axis=1) > 1e-3)[::20]:
         v = s["vel"][i]
-        assert math.remainder(s["yaw"][i] - math.atan2(v[1], v[0]), 2 * math.pi) == pytest.approx(0.0, abs=1e-9)
+        assert math.remainder(s["yaw"][i] - math.atan2(v[1], v[0]), 2 * math.pi) == pytest.approx(
+            0.0, abs=1e-9
+        )
     end = lm.reference(lm.duration_s)
     assert end.pos_m == pytest.approx((1.0, 0.5, 1.5))
 
@@ -206,7 +230,9 @@ def test_takeoff_land_hold_line() -> None:
     assert ld.reference(ld.duration_s).pos_m[2] == pytest.approx(-0.3)
     assert min(ld.reference(t).vel_m_s[2] for t in np.linspace(0, ld.duration_s, 50)) == pytest.approx(-0.2)
     h = Hold((1.0, 2.0, 1.0), 0.5, 4.0)
-    assert h.duration_s == 4.0 and h.reference(2.0).pos_m == (1.0, 2.0, 1.0) and h.reference(2.0).yaw_rad == 0.5
+    assert (
+        h.duration_s == 4.0 and h.reference(2.0).pos_m == (1.0, 2.0, 1.0) and h.reference(2.0).yaw_rad == 0.5
+    )
     ln = Line((0, 0, 1), (1, 1, 1), 0.2, 0.2, yaw_rad=0.3, end_yaw_rad=-2.0)
     assert ln.reference(ln.duration_s).yaw_rad == pytest.approx(-2.0)
     assert ln.reference(ln.duration_s).pos_m == pytest.approx((1.0, 1.0, 1.0))
@@ -215,13 +241,20 @@ def test_takeoff_land_hold_line() -> None:
 
 
 def test_waypoints_travel_turns_before_each_leg() -> None:
-    w = Waypoints([(0, 0, 1), (1, 0, 1), (1, 1, 1)], 0.3, 0.3, start_yaw_rad=math.pi - 0.1,
-                  yaw_mode=YawMode.TRAVEL, turn_s=2.0)
+    w = Waypoints(
+        [(0, 0, 1), (1, 0, 1), (1, 1, 1)],
+        0.3,
+        0.3,
+        start_yaw_rad=math.pi - 0.1,
+        yaw_mode=YawMode.TRAVEL,
+        turn_s=2.0,
+    )
     r0 = w.reference(0.0)
     assert r0.yaw_rad == pytest.approx(math.pi - 0.1)
     # first a turn to face +x (the shorter way, through pi - 0.1 -> 0 ... wrapped continuously)
-    assert w.reference(2.0).yaw_rad == pytest.approx(0.0, abs=1e-9) or w.reference(2.0).yaw_rad == pytest.approx(
-        2 * math.pi, abs=1e-9)
+    assert w.reference(2.0).yaw_rad == pytest.approx(0.0, abs=1e-9) or w.reference(
+        2.0
+    ).yaw_rad == pytest.approx(2 * math.pi, abs=1e-9)
     end = w.reference(w.duration_s)
     assert math.remainder(end.yaw_rad - math.pi / 2, 2 * math.pi) == pytest.approx(0.0, abs=1e-9)
 

@@ -52,7 +52,9 @@ def test_defaults_and_tangent_alias() -> None:
     assert plan.settings.takeoff_height_m == 1.5
     pat = plan.build_pattern()
     r = pat.reference(1.0)
-    assert math.remainder(r.yaw_rad - math.atan2(r.vel_m_s[1], r.vel_m_s[0]), 2 * math.pi) == pytest.approx(0.0)
+    assert math.remainder(r.yaw_rad - math.atan2(r.vel_m_s[1], r.vel_m_s[0]), 2 * math.pi) == pytest.approx(
+        0.0
+    )
 
 
 @pytest.mark.parametrize(
@@ -60,7 +62,10 @@ def test_defaults_and_tangent_alias() -> None:
     [
         ({}, r"p.toml: pattern: missing \[pattern\]"),
         ({"pattern": {"kind": "spiral"}}, r"pattern.kind: 'spiral' is not a pattern kind"),
-        ({"pattern": {"kind": "circle", "period_s": 10, "radius_m": -1}}, r"pattern.radius_m: -1.0 is out of range"),
+        (
+            {"pattern": {"kind": "circle", "period_s": 10, "radius_m": -1}},
+            r"pattern.radius_m: -1.0 is out of range",
+        ),
         ({"pattern": {"kind": "circle", "period_s": 10, "radius": 1}}, r"pattern.radius: unknown key"),
         ({"pattern": {"kind": "circle"}}, r"pattern.period_s: give exactly one"),
         ({"pattern": {"kind": "circle", "period_s": 10, "direction": "left"}}, r"pattern.direction"),
@@ -68,7 +73,10 @@ def test_defaults_and_tangent_alias() -> None:
         ({"pattern": {"kind": "circle", "period_s": 10}, "controler": {}}, r"controler: unknown section"),
         ({"pattern": {"kind": "lawnmower", "yaw": "inward"}}, r"pattern.yaw: 'inward' is not allowed"),
         ({"pattern": {"kind": "waypoints", "points_m": [[0, 0, 1]]}}, r"pattern.points_m: needs 2"),
-        ({"pattern": {"kind": "rectangle", "corners_m": [[0, 0], [0, 0], [1, 1]]}}, r"p.toml: pattern: .*coincide"),
+        (
+            {"pattern": {"kind": "rectangle", "corners_m": [[0, 0], [0, 0], [1, 1]]}},
+            r"p.toml: pattern: .*coincide",
+        ),
     ],
 )
 def test_errors_name_file_and_key(table: dict[str, object], match: str) -> None:

@@ -20,14 +20,24 @@ from trajectories.supervisor import (
     supervise,
 )
 
-CFG = SafetyConfig(geofence=Geofence((-2.0, -2.0, -0.5), (2.0, 2.0, 2.5)), battery_min_pct=20.0, battery_min_v=13.0)
-GOOD_TEL = Telemetry(armed=True, mode=FlightMode.OFFBOARD, heartbeat_age_s=0.05,
-                     battery=BatteryState(15.5, 80.0))
+CFG = SafetyConfig(
+    geofence=Geofence((-2.0, -2.0, -0.5), (2.0, 2.0, 2.5)), battery_min_pct=20.0, battery_min_v=13.0
+)
+GOOD_TEL = Telemetry(
+    armed=True, mode=FlightMode.OFFBOARD, heartbeat_age_s=0.05, battery=BatteryState(15.5, 80.0)
+)
 
 
 def inp(**kw: object) -> SupervisorInput:
-    base: dict[str, object] = dict(now_s=12.5, mocap_age_s=0.01, telemetry=GOOD_TEL, control_mode=FlightMode.OFFBOARD,
-                                   pos_m=(0.0, 0.0, 1.0), ref_pos_m=(0.0, 0.0, 1.0), speed_m_s=0.2)
+    base: dict[str, object] = dict(
+        now_s=12.5,
+        mocap_age_s=0.01,
+        telemetry=GOOD_TEL,
+        control_mode=FlightMode.OFFBOARD,
+        pos_m=(0.0, 0.0, 1.0),
+        ref_pos_m=(0.0, 0.0, 1.0),
+        speed_m_s=0.2,
+    )
     base.update(kw)
     return SupervisorInput(**base)  # type: ignore[arg-type]
 
@@ -91,8 +101,14 @@ def test_heartbeat_loss_masks_stale_mode() -> None:
 
 def test_disabled_checks() -> None:
     cfg = SafetyConfig(geofence=Geofence(enabled=False), battery_min_pct=0.0, battery_min_v=0.0)
-    d = supervise(cfg, inp(pos_m=(100.0, 0.0, 1.0), ref_pos_m=(0.0, 100.0, 1.0),
-                           telemetry=tel(battery=BatteryState(1.0, 1.0))))
+    d = supervise(
+        cfg,
+        inp(
+            pos_m=(100.0, 0.0, 1.0),
+            ref_pos_m=(0.0, 100.0, 1.0),
+            telemetry=tel(battery=BatteryState(1.0, 1.0)),
+        ),
+    )
     assert d.ok
 
 
@@ -108,9 +124,17 @@ SINGLE = {
     FaultKind.BATTERY_LOW: dict(batt=True),
     FaultKind.INTERRUPTED: dict(interrupted=True),
 }
-RANK = [FaultKind.HEARTBEAT_LOST, FaultKind.PILOT_TAKEOVER, FaultKind.MOCAP_LOST, FaultKind.BATTERY_LOW,
-        FaultKind.INTERRUPTED, FaultKind.GEOFENCE_POSITION, FaultKind.GEOFENCE_REFERENCE, FaultKind.OVERSPEED,
-        FaultKind.MOCAP_STALE]
+RANK = [
+    FaultKind.HEARTBEAT_LOST,
+    FaultKind.PILOT_TAKEOVER,
+    FaultKind.MOCAP_LOST,
+    FaultKind.BATTERY_LOW,
+    FaultKind.INTERRUPTED,
+    FaultKind.GEOFENCE_POSITION,
+    FaultKind.GEOFENCE_REFERENCE,
+    FaultKind.OVERSPEED,
+    FaultKind.MOCAP_STALE,
+]
 
 
 def _combo_input(kinds: tuple[FaultKind, ...]) -> SupervisorInput:
@@ -130,7 +154,9 @@ def _combo_input(kinds: tuple[FaultKind, ...]) -> SupervisorInput:
 
 
 COMBOS = [
-    c for n in (2, 3) for c in itertools.combinations(SINGLE, n)
+    c
+    for n in (2, 3)
+    for c in itertools.combinations(SINGLE, n)
     if not {FaultKind.MOCAP_STALE, FaultKind.MOCAP_LOST} <= set(c)  # one mocap age cannot be both
 ]
 
@@ -153,19 +179,34 @@ def test_preflight_names_visible_bodies() -> None:
     assert "none" in preflight_problems(CFG, "uav1", (), False, GOOD_TEL, None)[0]
     assert "not tracked" in preflight_problems(CFG, "uav1", ("uav1",), False, GOOD_TEL, None)[0]
     assert preflight_problems(CFG, "uav1", ("uav1",), True, GOOD_TEL, (0.0, 0.0, 0.0)) == []
-    bad = preflight_problems(CFG, "uav1", ("uav1",), True, tel(heartbeat_age_s=9.0, battery=BatteryState(12.0, 10.0)),
-                             (3.0, 0.0, 0.0))
+    bad = preflight_problems(
+        CFG,
+        "uav1",
+        ("uav1",),
+        True,
+        tel(heartbeat_age_s=9.0, battery=BatteryState(12.0, 10.0)),
+        (3.0, 0.0, 0.0),
+    )
     assert len(bad) == 4  # heartbeat, battery %, battery V, geofence
 
 
 def test_safety_config_validation() -> None:
-    cfg = load_section(SafetyConfig, {"geofence": {"min_m": [-1, -1, 0], "max_m": [1, 1, 2]}}, path="p.toml",
-                       prefix="safety")
+    cfg = load_section(
+        SafetyConfig, {"geofence": {"min_m": [-1, -1, 0], "max_m": [1, 1, 2]}}, path="p.toml", prefix="safety"
+    )
     assert cfg.geofence.contains((0.5, 0.5, 1.0)) and not cfg.geofence.contains((1.5, 0.0, 1.0))
     with pytest.raises(ConfigError, match=r"p.toml: safety.geofence.min_m: x min 1.0 is not below max"):
-        load_section(SafetyConfig, {"geofence": {"min_m": [1, -1, 0], "max_m": [1, 1, 2]}}, path="p.toml",
-                     prefix="safety")
+        load_section(
+            SafetyConfig,
+            {"geofence": {"min_m": [1, -1, 0], "max_m": [1, 1, 2]}},
+            path="p.toml",
+            prefix="safety",
+        )
     with pytest.raises(ConfigError, match="mocap_land_after_s"):
-        load_section(SafetyConfig, {"mocap_hold_after_s": 0.5, "mocap_land_after_s": 0.4}, path="p.toml",
-                     prefix="safety")
+        load_section(
+            SafetyConfig,
+            {"mocap_hold_after_s": 0.5, "mocap_land_after_s": 0.4},
+            path="p.toml",
+            prefix="safety",
+        )
     assert Geofence().contains((0.0, 0.0, 1.0), margin_m=0.5)

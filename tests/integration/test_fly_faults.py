@@ -1,0 +1,374 @@
+"""Fault injection on whole flights against the simulated lab: each fault has a defined reaction.
+
+The flight is the circle plan (shortened) over real UDP to the simulated autopilot, with the
+simulated mocap on the same accelerated clock. Faults are injected on state, not on time: the
+runner's status callback tells when the pattern is being flown, and the fault is injected a
+few (simulated) seconds into it. The reaction is then read from the summary, the flight log
+and the simulator's own state (armed, mode, true position).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import math
+import os
+import re
+import signal
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from flightkit.config import Autopilot
+from flightkit.errors import MocapBodyMissing, SafetyAbort
+from flightkit.link.base import FlightMode
+from flightkit.link.mavlink import MavlinkLink
+from trajectories.flightlog import FlightSummary, read_flight_log
+from trajectories.plan import Plan, load_plan
+from trajectories.runner import Status, fly_plan
+from trajectories.simulated import SimSession, sim_session
+
+REPO = Path(__file__).resolve().parents[2]
+SPEED = 5.0
+
+pytestmark = [pytest.mark.sitl, pytest.mark.timeout(180)]
+
+
+def circle_plan(**safety: Any) -> Plan:
+    plan = load_plan(REPO / "examples" / "circle.toml")
+    settings = dataclasses.replace(plan.settings, hold_before_s=0.5, hold_after_s=0.5, landed_timeout_s=60.0)
+    pattern = dataclasses.replace(plan.pattern, laps=1)
+    return plan.with_changes(
+        settings=settings, pattern=pattern, safety=dataclasses.replace(plan.safety, **safety)
+    )
+
+
+@dataclasses.dataclass
+class Run:
+    session: SimSession
+    summary: FlightSummary | None = None
+    injected_at_s: float = math.nan
+    events: list[str] = dataclasses.field(default_factory=list)
+    task: asyncio.Future[FlightSummary] | None = None
+
+    @property
+    def armed(self) -> bool:
+        return self.session.lab.autopilot.armed
+
+    @property
+    def height_m(self) -> float:
+        return float(self.session.lab.truth().pos_enu_m[2])
+
+
+Injector = Callable[[Run, Status], None]
+
+
+async def fly_with_fault(
+    tmp_path: Path,
+    inject: Injector,
+    *,
+    after_s: float = 3.0,
+    plan: Plan | None = None,
+    autopilot: str = "px4",
+    cancel: bool = False,
+) -> Run:
+    """Fly the plan; ``after_s`` (sim) seconds into the pattern call ``inject`` once.
+
+    With ``cancel=True`` the injector's job is to cancel; the CancelledError is swallowed here.
+    """
+    plan = plan or circle_plan()
+    async with sim_session(autopilot=autopilot, speed=SPEED) as s:
+        run = Run(s)
+        s.lab.events.append(lambda e: run.events.append(f"{e.kind}:{e.detail}"))
+        start: list[float] = []
+
+        def on_status(st: Status) -> None:
+            if st.phase != "pattern" or not math.isnan(run.injected_at_s):
+                return
+            if not start:
+                start.append(st.t_s)
+            elif st.t_s - start[0] >= after_s:
+                run.injected_at_s = st.t_s
+                inject(run, st)
+
+        task = asyncio.ensure_future(
+            fly_plan(
+                plan,
+                s.config,
+                link=s.link,
+                mocap=s.mocap,
+                clock=s.clock,
+                arm=True,
+                log_path=tmp_path / "flight.csv",
+                on_status=on_status,
+            )
+        )
+        run.task = task
+        try:
+            run.summary = await task
+        except asyncio.CancelledError:
+            if not cancel:
+                raise
+        return run
+    raise AssertionError("unreachable")
+
+
+def kinds(summary: FlightSummary) -> list[str]:
+    """Fault kinds in order, without the one-cycle ``mocap_stale`` holds a starved 2-core machine
+    produces at 5x (a 40 ms wall-time stall is 0.2 s of sim time); the dropout tests check it."""
+    return [f.kind.value for f in summary.faults if f.kind.value != "mocap_stale"]
+
+
+def test_short_mocap_dropout_holds_then_resumes(tmp_path: Path) -> None:
+    run = asyncio.run(fly_with_fault(tmp_path, lambda r, _s: r.session.mocap.drop_for(0.6)))
+    s = run.summary
+    assert s is not None
+    assert s.outcome == "completed", s.format_table()
+    all_kinds = [f.kind.value for f in s.faults]
+    assert "mocap_stale" in all_kinds and "mocap_lost" not in all_kinds
+    assert s.laps_completed == 1
+    log = read_flight_log(tmp_path / "flight.csv")
+    pat = log["phase"] == "pattern"
+    held = pat & (log["action"] == "HOLD")
+    # held for about the dropout (0.6 s less the 0.2 s threshold), with zero velocity commanded
+    t_held = log["t_s"][held]
+    assert 0.25 < t_held.max() - t_held.min() < 0.6
+    assert np.all(log["sp_vx_m_s"][held] == 0.0) and np.all(log["sp_vy_m_s"][held] == 0.0)
+    # then resumed: the pattern continued after the hold and finished its lap within bounds
+    assert np.any(pat & (log["action"] == "CONTINUE") & (log["t_s"] > t_held.max()))
+    assert s.phase("pattern").max_error_m < 0.15
+
+
+def test_long_mocap_dropout_lands_with_the_autopilot(tmp_path: Path) -> None:
+    run = asyncio.run(fly_with_fault(tmp_path, lambda r, _s: r.session.mocap.drop_for(30.0)))
+    s = run.summary
+    assert s is not None
+    assert s.outcome == "autopilot_landing", s.format_table()
+    assert kinds(s)[0] == "mocap_lost"
+    lost = next(f for f in s.faults if f.kind.value == "mocap_lost")
+    assert lost.time_s - run.injected_at_s == pytest.approx(1.0, abs=0.35)
+    assert not run.armed and run.height_m < 0.05
+    assert any(e.startswith("mode:OFFBOARD -> LAND") for e in run.events)
+
+
+def test_heartbeat_loss_stops_and_reports(tmp_path: Path) -> None:
+    run = asyncio.run(fly_with_fault(tmp_path, lambda r, _s: r.session.lab.kill_link(4.0)))
+    s = run.summary
+    assert s is not None
+    assert s.outcome == "stopped", s.format_table()
+    assert "heartbeat_lost" in kinds(s)
+    hb = next(f for f in s.faults if f.kind.value == "heartbeat_lost")
+    # 1 s heartbeat period + 1 s timeout after the last heartbeat before the cut
+    assert 1.0 < hb.time_s - run.injected_at_s < 2.6
+    assert "heartbeat" in hb.message
+    # the autopilot's own failsafe took the vehicle (PX4: offboard lost -> position mode)
+    assert any(e.startswith("failsafe") for e in run.events)
+
+
+@pytest.mark.parametrize("autopilot", ["px4", "ardupilot"])
+def test_geofence_breach_holds_then_lands_inside(tmp_path: Path, autopilot: str) -> None:
+    # the circle goes round from (-1, 0) through (0, -1) to (1, 0): a fence at x = 0.5 is crossed
+    plan = circle_plan(
+        check_plan_in_fence=False,
+        geofence=dataclasses.replace(circle_plan().safety.geofence, max_m=(0.5, 2.5, 2.5)),
+    )
+    run = asyncio.run(fly_with_fault(tmp_path, lambda r, _s: None, plan=plan, autopilot=autopilot))
+    s = run.summary
+    assert s is not None
+    assert s.outcome == "landed_early", s.format_table()
+    assert kinds(s)[0] == "geofence_reference"
+    names = [p.name for p in s.phases]
+    assert names[-2:] == ["abort_hold", "land"]
+    assert s.phase("abort_hold").duration_s == pytest.approx(plan.safety.abort_hold_s, abs=0.3)
+    assert not run.armed and run.height_m < 0.05
+    x_final = float(run.session.lab.truth().pos_enu_m[0])
+    assert x_final < 0.5  # stopped before the fence (the reference is checked ahead), landed inside
+
+
+def test_plan_leaving_the_fence_is_refused_before_arming(tmp_path: Path) -> None:
+    plan = circle_plan(geofence=dataclasses.replace(circle_plan().safety.geofence, max_m=(0.5, 2.5, 2.5)))
+
+    async def go() -> SimSession:
+        async with sim_session(autopilot="px4", speed=SPEED) as s:
+            with pytest.raises(SafetyAbort, match=r"leaves the geofence") as info:
+                await fly_plan(
+                    plan, s.config, link=s.link, mocap=s.mocap, clock=s.clock, arm=True, log_path=""
+                )
+            assert info.value.reason == "preflight"
+            assert not s.lab.autopilot.armed
+            return s
+
+    asyncio.run(go())
+
+
+@pytest.mark.parametrize(
+    ("autopilot", "pilot_mode"), [("px4", FlightMode.POSCTL), ("ardupilot", FlightMode.LOITER)]
+)
+def test_pilot_mode_change_ends_the_script_without_fighting(
+    tmp_path: Path, autopilot: str, pilot_mode: FlightMode
+) -> None:
+    pilot_done: list[asyncio.Task[None]] = []
+
+    async def pilot(run: Run) -> None:
+        # a second MAVLink client (the ground station / RC stand-in) switches the mode
+        cfg = dataclasses.replace(run.session.config.link, source_system=254, source_component=190)
+        async with MavlinkLink(cfg, Autopilot(autopilot), run.session.clock) as gcs:
+            await gcs.set_mode(pilot_mode)
+            # the script must not switch back: watch for 3 s of sim time
+            end = run.session.clock.monotonic_s() + 3.0
+            while run.session.clock.monotonic_s() < end:
+                assert run.session.lab.autopilot.mode is pilot_mode
+                await run.session.clock.sleep(0.05)
+
+    def inject(run: Run, _s: Status) -> None:
+        pilot_done.append(asyncio.ensure_future(pilot(run)))
+
+    async def go() -> Run:
+        run = await fly_with_fault(tmp_path, inject, autopilot=autopilot)
+        await asyncio.wait_for(pilot_done[0], 10.0)
+        return run
+
+    run = asyncio.run(go())
+    s = run.summary
+    assert s is not None
+    assert s.outcome == "released", s.format_table()
+    assert kinds(s) == ["pilot_takeover"]
+    assert pilot_mode.value in s.faults[-1].message
+    assert run.armed and run.height_m > 1.0  # still flying, in the pilot's hands
+    assert run.session.lab.autopilot.mode is pilot_mode
+
+
+def test_cancelling_the_flight_task_lands_instead_of_exiting(tmp_path: Path) -> None:
+    run = asyncio.run(
+        fly_with_fault(tmp_path, lambda r, _s: r.task.cancel() if r.task else None, cancel=True)
+    )
+    assert run.summary is None  # cancelled: no summary returned, but...
+    assert not run.armed and run.height_m < 0.05  # ...landed and disarmed before the task ended
+    log = read_flight_log(tmp_path / "flight.csv")
+    assert log["phase"][-1] == "land"
+    assert any(f["kind"] == "interrupted" for f in log.faults)
+
+
+def test_interrupt_lands_and_is_reported(tmp_path: Path) -> None:
+    # what SIGINT / SIGTERM do through FlightRunner.signals_land(): runner.interrupt()
+    run = asyncio.run(_interrupt_flight(tmp_path))
+    s = run.summary
+    assert s is not None
+    assert s.outcome == "landed_early", s.format_table()
+    assert kinds(s) == ["interrupted"]
+    assert s.phases[-1].name == "land"
+    assert not run.armed and run.height_m < 0.05
+
+
+async def _interrupt_flight(tmp_path: Path) -> Run:
+    from trajectories.script import Flight
+
+    async with sim_session(autopilot="px4", speed=SPEED) as s:
+        run = Run(s)
+        plan = circle_plan()
+        async with Flight(
+            s.config,
+            arm=True,
+            link=s.link,
+            mocap=s.mocap,
+            clock=s.clock,
+            safety=plan.safety,
+            handle_signals=False,
+        ) as flight:
+            await flight.takeoff(1.0)
+
+            async def interrupt_soon() -> None:
+                await s.clock.sleep(2.0)
+                flight.interrupt()
+
+            task = asyncio.ensure_future(interrupt_soon())
+            with pytest.raises(SafetyAbort) as info:
+                await flight.fly(plan.build_pattern())
+            await task
+            assert info.value.reason == "interrupted"
+        run.summary = flight.summary
+        return run
+    raise AssertionError("unreachable")
+
+
+def test_missing_mocap_body_refuses_to_arm_naming_visible_bodies(tmp_path: Path) -> None:
+    async def go() -> SimSession:
+        # the vehicle is called "cf7" in the mocap system, the lab config says "uav1"
+        async with sim_session(autopilot="px4", speed=SPEED, mocap_body="cf7") as s:
+            with pytest.raises(MocapBodyMissing) as info:
+                await fly_plan(
+                    circle_plan(), s.config, link=s.link, mocap=s.mocap, clock=s.clock, arm=True, log_path=""
+                )
+            assert info.value.body == "uav1" and info.value.visible == ("cf7",)
+            assert "cf7" in str(info.value)
+            assert not s.lab.autopilot.armed
+            assert not any(e.kind == "armed" for e in s.lab.event_log)
+            return s
+
+    asyncio.run(go())
+
+
+def test_low_battery_lands(tmp_path: Path) -> None:
+    run = asyncio.run(fly_with_fault(tmp_path, lambda r, _s: r.session.lab.set_battery_remaining(0.12)))
+    s = run.summary
+    assert s is not None
+    assert s.outcome == "landed_early", s.format_table()
+    assert kinds(s) == ["battery_low"]
+    assert "12 %" in s.faults[-1].message
+    assert s.phases[-1].name == "land"
+    assert not run.armed and run.height_m < 0.05
+
+
+def test_fly_command_lands_on_sigint(tmp_path: Path) -> None:
+    """``flightkit fly --connect sim`` in a subprocess; SIGINT during the pattern lands the vehicle."""
+    log = tmp_path / "cli.csv"
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "flightkit",
+            "fly",
+            str(REPO / "examples" / "circle.toml"),
+            "--connect",
+            "sim",
+            "--arm",
+            "--speed",
+            str(SPEED),
+            "--json",
+            "--log",
+            str(log),
+        ],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert proc.stderr is not None
+        for line in proc.stderr:  # status lines, one per 0.2 s (not a tty)
+            if re.search(r"\bpattern\b", line):
+                break
+        else:
+            pytest.fail("the flight never reached the pattern")
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 1, err[-2000:]
+    import json
+
+    summary = json.loads(out)
+    assert summary["outcome"] == "landed_early"
+    assert [f["kind"] for f in summary["faults"]] == ["interrupted"]
+    assert summary["phases"][-1]["name"] == "land"
+    data = read_flight_log(log)
+    assert data["pos_z_m"][-1] < 0.15  # it came down under control before handing over the touchdown

@@ -1,0 +1,155 @@
+"""The three lab plans flown end to end against the simulated lab, on both backends and autopilots.
+
+Each flight is the real plan from ``examples/`` (preflight, arm, take-off, hold, the pattern,
+hold, land, disarm) over real UDP to the simulated PX4 / ArduPilot, with the simulated mocap
+on the same accelerated clock. Durations are shortened through plan overrides so the file
+stays within a couple of minutes: one lap instead of two, short holds, and the rectangle and
+lawnmower at 0.25 m/s with 2 s corner turns instead of 0.1 m/s and 5 s (same geometry).
+
+Bounds were set from measured runs with margin (see docs/flying.md for the figures):
+pattern RMS 5-10 mm on pymavlink on a quiet machine (18 mm under heavy load), ~30 mm on MAVSDK.
+
+On this shared 2-core machine a 5x-accelerated flight can miss its 0.2 s (sim) mocap deadline
+when the process is starved for ~40 ms of wall time; the supervisor then holds for a cycle, as
+it should. Such ``mocap_stale`` holds are tolerated here; any other fault fails the test.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from trajectories.flightlog import FlightSummary, read_flight_log
+from trajectories.plan import Plan, load_plan
+from trajectories.simulated import fly_plan_in_sim
+
+EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
+SPEED = 5.0  # the 2-core machine keeps up at 5x (20x starves the loop)
+MAVSDK_SPEED = 2.0  # the MAVSDK backend times its stream on the clock but MAVSDK itself runs on wall time
+
+# Quiet machine: pattern RMS 5-10 mm, max 21-54 mm. Under the shared machine's load a stalled
+# event loop (0.1 s wall = 0.5 s sim) has given RMS 18 mm and max 88 mm; the bounds allow that.
+RMS_BOUND_M = 0.03
+MAX_BOUND_M = 0.12
+
+pytestmark = [pytest.mark.sitl, pytest.mark.timeout(240)]
+
+
+def shortened(name: str) -> Plan:
+    """The example plan ``name`` with one lap, 1 s holds and (rectangle, lawnmower) faster sides."""
+    plan = load_plan(EXAMPLES / f"{name}.toml")
+    settings = dataclasses.replace(plan.settings, hold_before_s=1.0, hold_after_s=1.0)
+    pattern = dataclasses.replace(plan.pattern, laps=1)
+    if name in ("rectangle", "lawnmower"):
+        pattern = dataclasses.replace(pattern, speed_m_s=0.25, turn_s=2.0)
+    return plan.with_changes(settings=settings, pattern=pattern)
+
+
+def assert_clean(summary: FlightSummary) -> None:
+    assert summary.outcome == "completed", summary.format_table()
+    unexpected = [f for f in summary.faults if f.kind.value != "mocap_stale"]
+    assert not unexpected, summary.format_table()
+    assert summary.laps_completed == 1
+    assert [p.name for p in summary.phases] == ["takeoff", "hold", "goto", "pattern", "hold_2", "land"]
+
+
+def pattern_rows(log_path: str) -> dict[str, np.ndarray]:
+    log = read_flight_log(log_path)
+    sel = (log["phase"] == "pattern") & (log["action"] == "CONTINUE")
+    return {k: np.asarray(v[sel]) for k, v in log.columns.items() if k not in ("phase", "action", "sp_frame")}
+
+
+async def fly(
+    name: str, autopilot: str, backend: str, speed: float, tmp_path: Path, plan: Plan | None = None
+) -> FlightSummary:
+    plan = plan or shortened(name)
+    return await fly_plan_in_sim(
+        plan,
+        autopilot=autopilot,
+        backend=backend,
+        speed=speed,
+        log_path=tmp_path / f"{name}-{autopilot}-{backend}.csv",
+    )
+
+
+@pytest.mark.parametrize("autopilot", ["px4", "ardupilot"])
+def test_circle_tracks_within_bounds_and_looks_inward(autopilot: str, tmp_path: Path) -> None:
+    summary = asyncio.run(fly("circle", autopilot, "pymavlink", SPEED, tmp_path))
+    assert_clean(summary)
+    pat = summary.phase("pattern")
+    assert 38.0 < pat.duration_s < 45.0  # one 40 s lap (pattern time stands still only while holding)
+    assert pat.rms_error_m < RMS_BOUND_M, summary.format_table()
+    assert pat.max_error_m < MAX_BOUND_M, summary.format_table()
+    assert summary.phase("takeoff").max_error_m < 0.08
+    assert summary.phase("land").max_error_m < 0.12  # measured against the floor-clamped reference
+
+    # the flown path, from the log: a 1 m circle at 1.5 m, all the way round, facing the centre
+    r = pattern_rows(summary.log_path or "")
+    x, y, z = r["pos_x_m"], r["pos_y_m"], r["pos_z_m"]
+    radius = np.hypot(x, y)
+    assert np.all(np.abs(radius - 1.0) < MAX_BOUND_M)
+    assert np.all(np.abs(z - 1.5) < MAX_BOUND_M)
+    swept = np.unwrap(np.arctan2(y, x))
+    assert abs(swept[-1] - swept[0]) > 2 * math.pi - 0.1  # a full lap, counter-clockwise
+    assert swept[-1] > swept[0]
+    inward = np.arctan2(-y, -x)
+    yaw_err = np.angle(np.exp(1j * (r["yaw_rad"] - inward)))
+    assert np.max(np.abs(yaw_err)) < math.radians(8.0)
+
+
+@pytest.mark.parametrize("autopilot", ["px4", "ardupilot"])
+def test_rectangle_flies_its_corners_with_turns_in_place(autopilot: str, tmp_path: Path) -> None:
+    summary = asyncio.run(fly("rectangle", autopilot, "pymavlink", SPEED, tmp_path))
+    assert_clean(summary)
+    pat = summary.phase("pattern")
+    assert pat.rms_error_m < RMS_BOUND_M, summary.format_table()
+    assert pat.max_error_m < MAX_BOUND_M, summary.format_table()
+
+    r = pattern_rows(summary.log_path or "")
+    x, y = r["pos_x_m"], r["pos_y_m"]
+    # 2 m x 1 m centred on the origin: every corner visited, nothing flown outside it
+    for cx, cy in ((-1.0, -0.5), (1.0, -0.5), (1.0, 0.5), (-1.0, 0.5)):
+        assert np.min(np.hypot(x - cx, y - cy)) < 0.05, (cx, cy)
+    assert np.all(np.abs(x) < 1.0 + MAX_BOUND_M) and np.all(np.abs(y) < 0.5 + MAX_BOUND_M)
+    # the yaw turns only while standing at a corner (speed ~0 while the yaw rate is large)
+    turning = np.abs(r["sp_yaw_rate_rad_s"]) > 0.3
+    assert turning.any()
+    speed = np.hypot(r["ref_vx_m_s"], r["ref_vy_m_s"])
+    assert np.all(speed[turning] < 0.02)
+
+
+@pytest.mark.parametrize("autopilot", ["px4", "ardupilot"])
+def test_lawnmower_covers_its_lanes(autopilot: str, tmp_path: Path) -> None:
+    summary = asyncio.run(fly("lawnmower", autopilot, "pymavlink", SPEED, tmp_path))
+    assert_clean(summary)
+    pat = summary.phase("pattern")
+    assert pat.rms_error_m < RMS_BOUND_M, summary.format_table()
+    assert pat.max_error_m < MAX_BOUND_M, summary.format_table()
+
+    r = pattern_rows(summary.log_path or "")
+    x, y = r["pos_x_m"], r["pos_y_m"]
+    # lanes along x at y = -0.5, 0, 0.5 (0.5 m spacing over a 1 m width), each flown end to end
+    for lane_y in (-0.5, 0.0, 0.5):
+        on_lane = np.abs(y - lane_y) < 0.03
+        assert np.ptp(x[on_lane]) > 1.9, lane_y
+
+
+def test_mavsdk_backend_flies_a_short_circle_on_px4(tmp_path: Path) -> None:
+    """MAVSDK runs on wall time: one 20 s lap at 2x keeps it to ~20 s."""
+    plan = shortened("circle")
+    plan = plan.with_changes(
+        settings=dataclasses.replace(plan.settings, hold_before_s=0.5, hold_after_s=0.5),
+        pattern=dataclasses.replace(plan.pattern, period_s=20.0),
+    )
+    summary = asyncio.run(fly("circle", "px4", "mavsdk", MAVSDK_SPEED, tmp_path, plan))
+    assert_clean(summary)
+    pat = summary.phase("pattern")
+    assert pat.rms_error_m < 0.05, summary.format_table()
+    assert pat.max_error_m < 0.10, summary.format_table()
+    r = pattern_rows(summary.log_path or "")
+    assert np.all(np.abs(np.hypot(r["pos_x_m"], r["pos_y_m"]) - 1.0) < 0.1)
