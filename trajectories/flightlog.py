@@ -12,6 +12,8 @@ duration, loop rate and faults; ``to_dict()`` gives the JSON summary.
 
 from __future__ import annotations
 
+from flightkit.errors import FlightkitError
+
 import io
 import json
 import math
@@ -164,7 +166,14 @@ class FlightLog:
     def __init__(self, path: str | Path, meta: dict[str, Any] | None = None, flush_every: int = 200) -> None:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._fh: TextIO = self.path.open("x", encoding="utf-8", newline="")
+        try:
+            self._fh: TextIO = self.path.open("x", encoding="utf-8", newline="")
+        except FileExistsError:
+            raise FlightkitError(
+                f"flight log {self.path} exists; give another --log path or remove the old log"
+            ) from None
+        except OSError as exc:
+            raise FlightkitError(f"cannot create flight log {self.path}: {exc.strerror}; check the folder") from exc
         self._fh.write(_MAGIC + json.dumps(meta or {}) + "\n")
         self._fh.write(",".join(COLUMNS) + "\n")
         self._buf = io.StringIO()
