@@ -402,7 +402,17 @@ def draw_map(robots: Sequence[RobotState], path: Path, *, title: str = "flightki
                 ax.annotate(r.label, (p.x, p.y), textcoords="offset points", xytext=(8, 8), color=c)
         if any(r.segments for r in robots):
             ax.plot([], [], "-", color="k", lw=3, label="wall segments")
-        ax.set_aspect("equal", adjustable="datalim")
+        # Never zoom in below half a map unit around the data: a hovering robot is a dot, not noise.
+        pts = [xy for r in robots for xy in r.track] + [
+            (x, y) for r in robots for s in r.segments for x, y in ((s.x0, s.y0), (s.x1, s.y1))
+        ]
+        if pts:
+            xs_all, ys_all = zip(*pts, strict=True)
+            cx, cy = (min(xs_all) + max(xs_all)) / 2, (min(ys_all) + max(ys_all)) / 2
+            half = max(max(xs_all) - min(xs_all), max(ys_all) - min(ys_all), 1.0) / 2 * 1.15
+            ax.set_xlim(cx - half, cx + half)
+            ax.set_ylim(cy - half, cy + half)
+        ax.set_aspect("equal", adjustable="box")
         ax.grid(True, alpha=0.3)
         ax.set_xlabel("map x")
         ax.set_ylabel("map y")
