@@ -1,0 +1,190 @@
+"""Benchmark of the visual odometry methods against the lab's original pipeline, one core.
+
+For every real sequence in ``../shared/data`` (KITTI 06 stereo, 7-Scenes RGB-D, the two
+TUM fr1/xyz pairs, EuRoC V1_01 at rest) and every method that the sequence's sensors allow,
+at 320x240 and 640x480, prints:
+
+* frames/s of processing (images already decoded and resized; best of ``--repeat`` runs),
+  from wall time ("fps") and from the thread's CPU time ("cpu fps": what one dedicated
+  core does; on a shared machine the wall figure includes time the core spent on other
+  processes), and the mean per-stage wall milliseconds (track, motion, keyframe, ba);
+* accuracy against ground truth: ATE (SE(3)-aligned RMSE; none for 2-frame pairs), RPE
+  (delta 1 frame, RMSE), the lab's relative (per step) and absolute (accumulated) errors
+  (mean translation and rotation);
+* the lab's baseline (SIFT + brute force + solvePnP iterative / essential matrix, every
+  frame) side by side, and the speed ratio.
+
+The process is pinned to one CPU and OpenCV/BLAS to one thread.
+
+Run: .venv/bin/python bench/vo.py [--sizes 320x240,640x480] [--repeat 2] [--no-baseline]
+     [--ba 4] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("MKL_NUM_THREADS", "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import math  # noqa: E402
+from dataclasses import replace  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+
+from estimation.baseline import run_baseline  # noqa: E402
+from estimation.evaluation import Alignment, ape, lab_errors, rpe  # noqa: E402
+from estimation.pipeline import Method, VoOptions, VoResult, run_vo  # noqa: E402
+from flightkit.datasets.registry import open_sequence  # noqa: E402
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+SEQUENCES = {
+    "kitti06": ("kitti06_stereo", ["stereo", "flow", "flow@stereo"]),
+    "7scenes": ("sevenscenes_tsdf50", ["rgbd-pnp", "rgbd-essential", "rgbd-kabsch", "flow"]),
+    "tum_case1": ("tum_fr1xyz_pairs/case_1", ["rgbd-pnp", "rgbd-essential", "rgbd-kabsch", "flow"]),
+    "tum_case2": ("tum_fr1xyz_pairs/case_2", ["rgbd-pnp", "rgbd-essential", "rgbd-kabsch", "flow"]),
+    "euroc_static": ("euroc_v101_static", ["stereo", "flow", "flow@stereo"]),
+}
+
+
+def errors(res: VoResult, seq: object) -> dict[str, float]:
+    gt = seq.groundtruth()  # type: ignore[attr-defined]
+    est = res.trajectory("camera")
+    out: dict[str, float] = {}
+    alignment = Alignment.SE3 if len(est) >= 3 else Alignment.NONE
+    a = ape(est, gt, alignment)
+    out["ate_m"] = a.translation.rmse
+    r = rpe(est, gt, 1.0, "frames", alignment)
+    out["rpe_m"] = r.translation.rmse
+    out["rpe_deg"] = math.degrees(r.rotation.rmse)
+    lab = lab_errors(est, gt)
+    out["lab_rel_m"] = lab.relative_translation.mean
+    out["lab_rel_deg"] = math.degrees(lab.relative_rotation.mean)
+    out["lab_abs_m"] = lab.absolute_translation.mean
+    out["lab_abs_deg"] = math.degrees(lab.absolute_rotation.mean)
+    return out
+
+
+def best_of(fn, repeat: int) -> VoResult:  # type: ignore[no-untyped-def]
+    best = None
+    for _ in range(repeat):
+        res = fn()
+        if best is None or res.fps_cpu > best.fps_cpu:
+            best = res
+    assert best is not None
+    return best
+
+
+def stage_line(res: VoResult) -> str:
+    ms = {k: float(np.mean(v)) for k, v in res.stage_ms.items()}
+    return " ".join(f"{k} {ms[k]:5.2f}" for k in ("track", "motion", "keyframe", "ba", "total"))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--sizes", default="320x240,640x480")
+    ap.add_argument("--repeat", type=int, default=2)
+    ap.add_argument("--no-baseline", action="store_true")
+    ap.add_argument("--ba", type=int, default=0, help="also run with local BA over N keyframes")
+    ap.add_argument("--only", help="comma-separated sequence keys")
+    ap.add_argument("--json", type=Path)
+    args = ap.parse_args()
+
+    cv2.setNumThreads(1)
+    if hasattr(os, "sched_setaffinity"):
+        cpus = sorted(os.sched_getaffinity(0))
+        os.sched_setaffinity(0, {cpus[-1]})
+    sizes = [tuple(int(v) for v in s.split("x")) for s in args.sizes.split(",")]
+    keys = args.only.split(",") if args.only else list(SEQUENCES)
+    rows: list[dict[str, object]] = []
+    print(f"data: {DATA}; OpenCV {cv2.__version__}, threads {cv2.getNumThreads()}, one CPU")
+    hdr = (
+        f"{'sequence':13} {'size':8} {'method':16} {'fps':>7} {'cpu fps':>7} {'ATE m':>8} {'RPE m':>8} "
+        f"{'RPE deg':>8} {'rel m':>8} {'rel deg':>8} {'abs m':>8} {'abs deg':>8}  stages ms"
+    )
+    for key in keys:
+        folder, methods = SEQUENCES[key]
+        seq = open_sequence(DATA / folder)
+        print(f"\n== {key}: {seq.name}, {len(seq)} frames, {seq.intrinsics.width}x{seq.intrinsics.height}")
+        print(hdr)
+        for size in sizes:
+            runs: list[tuple[str, VoResult, VoOptions | None]] = []
+            for label in methods:
+                # "flow@stereo": the flow method with per-point stereo depth instead of the altitude.
+                m, _, variant = label.partition("@")
+                opts = VoOptions(flow_depth="stereo") if variant == "stereo" else VoOptions()
+                runs.append(
+                    (
+                        label,
+                        best_of(
+                            lambda m=m, o=opts, s=seq, z=size: run_vo(
+                                s, m, options=o, size=z, init_from_groundtruth=True
+                            ),
+                            args.repeat,
+                        ),
+                        opts,
+                    )
+                )
+                if args.ba and Method(m) is not Method.FLOW:
+                    o2 = replace(opts, ba_window=args.ba)
+                    runs.append(
+                        (
+                            f"{m}+ba{args.ba}",
+                            best_of(
+                                lambda m=m, o=o2, s=seq, z=size: run_vo(
+                                    s, m, options=o, size=z, init_from_groundtruth=True
+                                ),
+                                1,
+                            ),
+                            o2,
+                        )
+                    )
+            if not args.no_baseline:
+                for mode in ("pnp", "essential"):
+                    runs.append(
+                        (
+                            f"baseline-{mode}",
+                            run_baseline(seq, mode, size=size, init_from_groundtruth=True),
+                            None,
+                        )
+                    )
+            base_fps = {n: r.fps_cpu for n, r, _ in runs if n.startswith("baseline")}
+            for name, res, _ in runs:
+                err = errors(res, seq)
+                print(
+                    f"{key:13} {size[0]}x{size[1]:<4} {name:16} {res.fps:7.1f} {res.fps_cpu:7.1f} "
+                    f"{err['ate_m']:8.4f} {err['rpe_m']:8.4f} {err['rpe_deg']:8.3f} {err['lab_rel_m']:8.4f} "
+                    f"{err['lab_rel_deg']:8.3f} {err['lab_abs_m']:8.4f} {err['lab_abs_deg']:8.3f}  "
+                    f"{stage_line(res)}"
+                )
+                row: dict[str, object] = {
+                    "sequence": key,
+                    "size": f"{size[0]}x{size[1]}",
+                    "method": name,
+                    "fps": res.fps,
+                    "fps_cpu": res.fps_cpu,
+                    **err,
+                }
+                row["stage_ms"] = {k: float(np.mean(v)) for k, v in res.stage_ms.items()}
+                row["quality_counts"] = np.bincount(res.quality, minlength=5).tolist()
+                if base_fps.get("baseline-pnp"):
+                    row["cpu_speedup_vs_baseline_pnp"] = res.fps_cpu / base_fps["baseline-pnp"]
+                rows.append(row)
+            if base_fps.get("baseline-pnp"):
+                ours = [(n, r.fps_cpu) for n, r, _ in runs if not n.startswith("baseline")]
+                ratio = ", ".join(f"{n} {f / base_fps['baseline-pnp']:.0f}x" for n, f in ours)
+                print(f"{'':13} speed vs baseline-pnp ({base_fps['baseline-pnp']:.1f} fps): {ratio}")
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=1))
+        print(f"\nwrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,252 @@
+"""Optical flow: pyramidal Lucas-Kanade tracking and 6-DoF velocity from image motion.
+
+Tracking
+    :func:`track_klt` tracks points forward, then back, and keeps only those that return
+    within ``fb_max_px`` of where they started (forward-backward check).
+
+Velocity
+    A static point at normalised image position (x, y) and depth Z, seen by a camera moving
+    with linear velocity v and angular velocity w (both in the camera frame, OpenCV axes),
+    moves in the image as ``[xdot, ydot] = L(x, y, Z) @ [v, w]`` with the interaction
+    matrix::
+
+        L = [[-1/Z,    0, x/Z,      x*y, -(1 + x*x),  y],
+             [   0, -1/Z, y/Z, 1 + y*y,       -x*y, -x]]
+
+    Three points give six equations for the six unknowns; :func:`velocity_ransac` solves
+    a whole batch of 3-point samples at once (batched normal equations), scores every
+    hypothesis against every point in one numpy pass, and refits on the inliers.
+    :func:`integrate_velocity` turns (v, w, dt) into the relative pose.
+
+    Depth comes from a depth image per point, or, for a camera looking at the ground, from
+    the stereo altitude ``Z = f * B / d`` (:func:`stereo_altitude_m`, median over the best
+    row-consistent ORB matches).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+from scipy.spatial.transform import Rotation
+
+from estimation.features import DescriptorExtractor
+from estimation.matching import match_stereo_rows
+from estimation.motion import make_T
+
+__all__ = [
+    "integrate_velocity",
+    "interaction_matrix",
+    "stereo_altitude_m",
+    "track_klt",
+    "velocity_lstsq",
+    "velocity_ransac",
+]
+
+logger = logging.getLogger(__name__)
+
+F64 = npt.NDArray[np.float64]
+Image = npt.NDArray[np.uint8]
+
+_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.03)
+
+
+def track_klt(
+    prev: Image,
+    cur: Image,
+    pts_prev: npt.NDArray[np.float32],
+    fb_max_px: float | None = 1.0,
+    win_px: int = 21,
+    levels: int = 3,
+    guess: npt.NDArray[np.float32] | None = None,
+) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.bool_]]:
+    """Track points from ``prev`` to ``cur`` with a forward-backward consistency check.
+
+    Args:
+        prev, cur: 8-bit images. (OpenCV's Python binding cannot take prebuilt pyramids, so
+            each call builds them; keep ``levels`` small for small images.)
+        pts_prev: (N, 2) float32 positions in ``prev``.
+        fb_max_px: a track is kept when tracking it back lands within this distance; None
+            skips the backward pass (half the cost; for callers with their own check).
+        guess: (N, 2) predicted positions in ``cur`` (e.g. from a motion prior), or None.
+
+    Returns:
+        ``(pts_cur, ok)``: (N, 2) float32 positions and (N,) bool validity.
+    """
+    n = len(pts_prev)
+    if n == 0:
+        return np.empty((0, 2), np.float32), np.zeros(0, dtype=bool)
+    p0 = np.ascontiguousarray(pts_prev, dtype=np.float32).reshape(-1, 1, 2)
+    flags = 0
+    p1_init = None
+    if guess is not None:
+        p1_init = np.ascontiguousarray(guess, dtype=np.float32).reshape(-1, 1, 2).copy()
+        flags = cv2.OPTFLOW_USE_INITIAL_FLOW
+    win = (win_px, win_px)
+    p1, st1, _ = cv2.calcOpticalFlowPyrLK(
+        prev, cur, p0, p1_init, winSize=win, maxLevel=levels, criteria=_CRITERIA, flags=flags
+    )
+    if fb_max_px is None:
+        return p1.reshape(-1, 2), st1.ravel() == 1
+    p0b, st2, _ = cv2.calcOpticalFlowPyrLK(
+        cur,
+        prev,
+        p1,
+        p0.copy(),
+        winSize=win,
+        maxLevel=levels,
+        criteria=_CRITERIA,
+        flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+    )
+    fb = np.einsum("nij,nij->n", p0b - p0, p0b - p0)
+    ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < fb_max_px * fb_max_px)
+    return p1.reshape(-1, 2), ok
+
+
+def interaction_matrix(x: F64, y: F64, Z: F64 | float) -> F64:
+    """Stacked interaction matrices, shape (N, 2, 6), for normalised points (x, y) at depth Z."""
+    n = len(x)
+    inv_z = np.broadcast_to(1.0 / np.asarray(Z, dtype=np.float64), (n,))
+    L = np.zeros((n, 2, 6))
+    L[:, 0, 0] = -inv_z
+    L[:, 0, 2] = x * inv_z
+    L[:, 0, 3] = x * y
+    L[:, 0, 4] = -(1.0 + x * x)
+    L[:, 0, 5] = y
+    L[:, 1, 1] = -inv_z
+    L[:, 1, 2] = y * inv_z
+    L[:, 1, 3] = 1.0 + y * y
+    L[:, 1, 4] = -x * y
+    L[:, 1, 5] = -x
+    return L
+
+
+def velocity_lstsq(L: F64, flow: F64) -> F64:
+    """Least-squares twist ``[v, w]`` (6,) from interaction matrices (N, 2, 6) and flow (N, 2)."""
+    A = L.reshape(-1, 6)
+    b = flow.reshape(-1)
+    sol, *_ = np.linalg.lstsq(A, b, rcond=None)
+    return np.asarray(sol, dtype=np.float64)
+
+
+def velocity_ransac(
+    xn_prev: F64,
+    xn_cur: F64,
+    Z: F64 | float,
+    dt_s: float,
+    threshold: float,
+    max_iters: int = 200,
+    confidence: float = 0.999,
+    rng: np.random.Generator | None = None,
+    batch: int = 128,
+) -> tuple[F64, npt.NDArray[np.bool_]]:
+    """Camera twist from normalised point motion with a vectorised 3-point RANSAC.
+
+    Args:
+        xn_prev, xn_cur: (N, 2) normalised image coordinates ``K^-1 [u, v, 1]`` of the same
+            points in the previous and current image.
+        Z: depths (N,) or one depth for all (a camera above flat ground), metres.
+        dt_s: time between the images.
+        threshold: inlier threshold on the flow error in normalised units per second
+            (pixels / f / dt).
+
+    Returns:
+        ``(twist, inliers)``: twist (6,) = linear velocity (m/s) then angular velocity
+        (rad/s), both in the camera frame; inliers (N,) bool. A zero twist and no inliers
+        when fewer than 3 points are usable.
+    """
+    from estimation.motion import ransac_iterations
+
+    n = len(xn_prev)
+    if n < 3 or dt_s <= 0:
+        return np.zeros(6), np.zeros(n, dtype=bool)
+    mid = 0.5 * (xn_prev + xn_cur)
+    flow = (xn_cur - xn_prev) / dt_s
+    L = interaction_matrix(mid[:, 0], mid[:, 1], Z)
+    rng = rng if rng is not None else np.random.default_rng(0)
+    thr2 = threshold * threshold
+    best_count, best_mask = -1, np.zeros(n, dtype=bool)
+    needed, drawn = max_iters, 0
+    A_all = L.reshape(n, 2, 6)
+    eye = 1e-9 * np.eye(6)
+    while drawn < needed:
+        k = min(batch, needed - drawn)
+        idx = (
+            np.stack([rng.choice(n, 3, replace=False) for _ in range(k)])
+            if n < 8
+            else rng.integers(0, n, (k, 3))
+        )
+        A = A_all[idx].reshape(k, 6, 6)
+        b = flow[idx].reshape(k, 6)
+        At = np.swapaxes(A, 1, 2)
+        sol = np.linalg.solve(At @ A + eye, (At @ b[:, :, None]))[:, :, 0]  # (k, 6)
+        pred = np.einsum("nij,kj->kni", A_all, sol)  # (k, n, 2)
+        err = pred - flow[None]
+        inl = np.einsum("kni,kni->kn", err, err) < thr2
+        counts = inl.sum(axis=1)
+        j = int(np.argmax(counts))
+        if counts[j] > best_count:
+            best_count, best_mask = int(counts[j]), inl[j]
+            needed = ransac_iterations(best_count / n, 3, confidence, max_iters)
+        drawn += k
+    mask = best_mask
+    twist = np.zeros(6)
+    for _ in range(2):
+        if np.count_nonzero(mask) < 3:
+            return np.zeros(6), np.zeros(n, dtype=bool)
+        twist = velocity_lstsq(L[mask], flow[mask])
+        err = np.einsum("nij,j->ni", L, twist) - flow
+        mask = np.einsum("ni,ni->n", err, err) < thr2
+    return twist, mask
+
+
+def integrate_velocity(twist: F64, dt_s: float) -> F64:
+    """Relative pose ``T_prev_cur`` (4x4) of a camera moving with ``twist`` for ``dt_s``.
+
+    The twist's linear part is applied along the mid-interval attitude (second order).
+    """
+    v, w = twist[:3], twist[3:]
+    R = Rotation.from_rotvec(w * dt_s)
+    R_half = Rotation.from_rotvec(0.5 * w * dt_s)
+    return make_T(R.as_matrix(), R_half.apply(v * dt_s))
+
+
+def stereo_altitude_m(
+    left: npt.NDArray[np.uint8],
+    right: npt.NDArray[np.uint8],
+    fx_px: float,
+    baseline_m: float,
+    extractor: DescriptorExtractor | None = None,
+    best_fraction: float = 0.5,
+    max_dy_px: float = 1.5,
+) -> tuple[float, int]:
+    """Distance to the scene in front of a rectified stereo pair, ``Z = f * B / d``.
+
+    ORB features are matched along rows (:func:`~estimation.matching.match_stereo_rows`),
+    the ``best_fraction`` of matches by descriptor distance is kept, and the median
+    disparity gives Z. Meant for a camera looking down at roughly flat ground.
+
+    Returns:
+        ``(Z_m, n_matches)``; ``Z_m`` is NaN when fewer than 5 matches survive.
+    """
+    ex = extractor if extractor is not None else DescriptorExtractor("orb", 500)
+    fl = ex.extract(left)
+    fr = ex.extract(right)
+    il, ir, disp = match_stereo_rows(fl, fr, max_dy_px=max_dy_px)
+    if len(il) < 5:
+        return math.nan, len(il)
+    dist = (
+        np.count_nonzero(np.unpackbits(fl.descriptors[il] ^ fr.descriptors[ir], axis=1), axis=1)
+        if fl.norm == cv2.NORM_HAMMING
+        else np.linalg.norm(
+            fl.descriptors[il].astype(np.float32) - fr.descriptors[ir].astype(np.float32), axis=1
+        )
+    )
+    keep = np.argsort(dist, kind="stable")[: max(5, int(len(il) * best_fraction))]
+    d = float(np.median(disp[keep]))
+    if d <= 0:
+        return math.nan, len(keep)
+    return fx_px * baseline_m / d, len(keep)

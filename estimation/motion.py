@@ -1,0 +1,541 @@
+"""Frame-to-frame motion estimators: rigid 3D-3D (Kabsch/Umeyama + RANSAC), 3D-2D (PnP
++ RANSAC) and 2D-2D (essential matrix with metric scale from depth), and rigidity inliers.
+
+Conventions: every estimator returns :class:`Motion` whose ``T_cur_ref`` (4x4) maps points
+expressed in the *reference* camera frame (the earlier frame or keyframe) into the *current*
+camera frame, ``X_cur = R @ X_ref + t``; camera frames are OpenCV (x right, y down, z
+forward). The pose update is ``T_world_cur = T_world_ref @ inv(T_cur_ref)``.
+
+Inputs are numpy arrays: 3D points (N, 3) metres, pixels (N, 2), the intrinsic matrix
+``K`` (3, 3). Pure numpy except the PnP and essential-matrix solvers, which are OpenCV's.
+
+Functions:
+    umeyama(src, dst, with_scale) -> (R, t, s)        least squares, closed form (SVD)
+    ransac_rigid(src, dst, threshold_m, ...) -> Motion vectorised 3-point RANSAC + refit
+    rigidity_inliers(P, Q, tol_m) -> mask              max-clique of distance-preserving pairs
+    pnp(points_ref, pts_px, K, method, ...) -> Motion  iterative / EPnP / SQPnP with RANSAC
+    essential_metric(px_ref, px_cur, K, points_ref)    5-point RANSAC + recoverPose + depth scale
+    refine_pose(T, points_ref, px, K, disparity_px)    Gauss-Newton on reprojection + disparity
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from flightkit.errors import EstimationError
+
+__all__ = [
+    "PNP_METHODS",
+    "Motion",
+    "essential_metric",
+    "invert",
+    "make_T",
+    "pnp",
+    "ransac_iterations",
+    "ransac_rigid",
+    "refine_pose",
+    "rigidity_inliers",
+    "rotation_angle_rad",
+    "umeyama",
+]
+
+logger = logging.getLogger(__name__)
+
+F64 = npt.NDArray[np.float64]
+Mask = npt.NDArray[np.bool_]
+
+PNP_METHODS: dict[str, int] = {
+    "iterative": cv2.SOLVEPNP_ITERATIVE,
+    "epnp": cv2.SOLVEPNP_EPNP,
+    "sqpnp": cv2.SOLVEPNP_SQPNP,
+}
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Motion:
+    """A relative motion estimate.
+
+    Attributes:
+        T_cur_ref: (4, 4) maps reference-camera points into the current camera frame.
+        inliers: (N,) bool, which correspondences support the estimate.
+        ok: False when the estimator could not produce a trustworthy motion (too few
+            points or inliers); ``T_cur_ref`` is then the identity.
+        scale: Umeyama similarity scale (1.0 for rigid estimates).
+    """
+
+    T_cur_ref: F64
+    inliers: Mask
+    ok: bool
+    scale: float = 1.0
+
+    @property
+    def n_inliers(self) -> int:
+        return int(np.count_nonzero(self.inliers))
+
+    @property
+    def R(self) -> F64:
+        return self.T_cur_ref[:3, :3]
+
+    @property
+    def t(self) -> F64:
+        return self.T_cur_ref[:3, 3]
+
+
+def make_T(R: npt.ArrayLike, t: npt.ArrayLike) -> F64:
+    """4x4 homogeneous matrix from R (3, 3) and t (3,)."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.asarray(t, dtype=np.float64).reshape(3)
+    return T
+
+
+def invert(T: F64) -> F64:
+    """Inverse of a rigid 4x4 transform (no general matrix inverse)."""
+    Ti = np.eye(4)
+    Rt = T[:3, :3].T
+    Ti[:3, :3] = Rt
+    Ti[:3, 3] = -Rt @ T[:3, 3]
+    return Ti
+
+
+def rotation_angle_rad(R: F64) -> float:
+    """Angle of a rotation matrix, radians in [0, pi]."""
+    c = (float(np.trace(R)) - 1.0) * 0.5
+    return math.acos(min(1.0, max(-1.0, c)))
+
+
+def _failed(n: int) -> Motion:
+    return Motion(np.eye(4), np.zeros(n, dtype=bool), False)
+
+
+def umeyama(src: npt.ArrayLike, dst: npt.ArrayLike, with_scale: bool = False) -> tuple[F64, F64, float]:
+    """Least-squares ``dst ~ s * R @ src + t`` (Kabsch when ``with_scale`` is False, Umeyama 1991).
+
+    Args:
+        src, dst: (N, 3) corresponding points, N >= 3 and not all collinear.
+        with_scale: also estimate the similarity scale s.
+
+    Returns:
+        ``(R, t, s)``; R is a proper rotation (det +1), s = 1.0 without scale.
+
+    Raises:
+        EstimationError: fewer than 3 points or mismatched shapes.
+    """
+    P = np.asarray(src, dtype=np.float64)
+    Q = np.asarray(dst, dtype=np.float64)
+    if P.shape != Q.shape or P.ndim != 2 or P.shape[1] != 3 or P.shape[0] < 3:
+        raise EstimationError(f"umeyama needs two (N, 3) arrays with N >= 3, got {P.shape} and {Q.shape}")
+    mp, mq = P.mean(axis=0), Q.mean(axis=0)
+    Pc, Qc = P - mp, Q - mq
+    H = Pc.T @ Qc / len(P)
+    U, S, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
+    D = np.array([1.0, 1.0, d])
+    R = (Vt.T * D) @ U.T
+    s = 1.0
+    if with_scale:
+        var_p = float(np.mean(np.sum(Pc * Pc, axis=1)))
+        if var_p <= 0.0:
+            raise EstimationError("umeyama with scale needs source points that are not all identical")
+        s = float(np.sum(S * D) / var_p)
+    t = mq - s * R @ mp
+    return R, t, s
+
+
+def _batch_kabsch(P: F64, Q: F64) -> tuple[F64, F64]:
+    """Kabsch for a batch of point sets: P, Q (K, M, 3) -> R (K, 3, 3), t (K, 3)."""
+    mp = P.mean(axis=1)
+    mq = Q.mean(axis=1)
+    H = np.einsum("kmi,kmj->kij", P - mp[:, None], Q - mq[:, None])
+    U, _, Vt = np.linalg.svd(H)
+    V = np.swapaxes(Vt, 1, 2)
+    d = np.sign(np.linalg.det(V @ np.swapaxes(U, 1, 2)))
+    d[d == 0] = 1.0
+    V[:, :, 2] *= d[:, None]
+    R = V @ np.swapaxes(U, 1, 2)
+    t = mq - np.einsum("kij,kj->ki", R, mp)
+    return R, t
+
+
+def ransac_iterations(inlier_ratio: float, sample_size: int, confidence: float, max_iters: int) -> int:
+    """Number of RANSAC draws for ``confidence`` of one all-inlier sample."""
+    w = min(max(inlier_ratio, 1e-9), 1.0)
+    p_good = w**sample_size
+    if p_good >= 1.0 - 1e-12:
+        return 1
+    if p_good < 1e-12:
+        return max_iters
+    n = math.log(1.0 - confidence) / math.log(1.0 - p_good)
+    return int(min(max_iters, max(1, math.ceil(n))))
+
+
+def ransac_rigid(
+    src: npt.ArrayLike,
+    dst: npt.ArrayLike,
+    threshold_m: float = 0.05,
+    max_iters: int = 256,
+    confidence: float = 0.999,
+    min_inliers: int = 6,
+    rng: np.random.Generator | None = None,
+    batch: int = 64,
+) -> Motion:
+    """Rigid ``dst ~ R @ src + t`` that tolerates outliers: vectorised 3-point RANSAC.
+
+    Hypotheses are drawn ``batch`` at a time and scored together with numpy (one batched
+    SVD, one residual tensor); the draw count adapts to the best inlier ratio seen. The
+    winner is re-fitted by Kabsch on its inliers twice (re-selecting inliers each time).
+
+    Args:
+        src, dst: (N, 3) corresponding points (reference frame, current frame), metres.
+        threshold_m: a point is an inlier when ``|R src + t - dst| < threshold_m``.
+        max_iters: cap on hypotheses.
+        confidence: stop when an all-inlier sample was drawn with this probability.
+        min_inliers: fewer inliers than this gives ``ok=False``.
+        rng: random generator (seeded default for repeatable runs).
+        batch: hypotheses scored per numpy pass.
+
+    Returns:
+        :class:`Motion` with ``T_cur_ref`` mapping src into dst. Returns immediately.
+    """
+    P = np.asarray(src, dtype=np.float64)
+    Q = np.asarray(dst, dtype=np.float64)
+    n = len(P)
+    if P.shape != Q.shape or (n and P.shape[1] != 3):
+        raise EstimationError(f"ransac_rigid needs two (N, 3) arrays, got {P.shape} and {Q.shape}")
+    if n < max(3, min_inliers):
+        return _failed(n)
+    rng = rng if rng is not None else np.random.default_rng(0)
+    thr2 = threshold_m * threshold_m
+    best_count, best_mask = -1, np.zeros(n, dtype=bool)
+    needed, drawn = max_iters, 0
+    while drawn < needed:
+        k = min(batch, needed - drawn)
+        # Three distinct indices per hypothesis.
+        idx = np.empty((k, 3), dtype=np.intp)
+        idx[:, 0] = rng.integers(0, n, k)
+        idx[:, 1] = (idx[:, 0] + rng.integers(1, n, k)) % n
+        third = rng.integers(0, n - 2, k)
+        lo = np.minimum(idx[:, 0], idx[:, 1])
+        hi = np.maximum(idx[:, 0], idx[:, 1])
+        third = third + (third >= lo)
+        third = third + (third >= hi)
+        idx[:, 2] = third
+        R, t = _batch_kabsch(P[idx], Q[idx])
+        res = np.einsum("kij,nj->kni", R, P) + t[:, None, :] - Q[None]
+        inl = np.einsum("kni,kni->kn", res, res) < thr2
+        counts = inl.sum(axis=1)
+        j = int(np.argmax(counts))
+        if counts[j] > best_count:
+            best_count, best_mask = int(counts[j]), inl[j]
+            needed = ransac_iterations(best_count / n, 3, confidence, max_iters)
+        drawn += k
+    if best_count < 3:
+        return _failed(n)
+    mask = best_mask
+    R_b, t_b = np.eye(3), np.zeros(3)
+    for _ in range(3):
+        if np.count_nonzero(mask) < 3:
+            return _failed(n)
+        R_b, t_b, _ = umeyama(P[mask], Q[mask])
+        r = P @ R_b.T + t_b - Q
+        new_mask = np.einsum("ni,ni->n", r, r) < thr2
+        if np.array_equal(new_mask, mask):
+            break
+        mask = new_mask
+    ok = int(np.count_nonzero(mask)) >= min_inliers
+    return Motion(make_T(R_b, t_b), mask, ok)
+
+
+def rigidity_inliers(P: npt.ArrayLike, Q: npt.ArrayLike, tol_m: float = 0.05, rel_tol: float = 0.02) -> Mask:
+    """Largest set of points whose mutual distances are preserved between two frames.
+
+    A rigid motion keeps every pairwise distance, so correspondences that agree form a
+    clique in the graph "|P_i - P_j| == |Q_i - Q_j| within tolerance" (Howard 2008). The
+    clique is grown greedily: start from the best-connected point, then repeatedly add the
+    candidate connected to all members with the most connections among the candidates.
+
+    Args:
+        P, Q: (N, 3) the same points in the reference and current camera frames.
+        tol_m: absolute distance tolerance; ``rel_tol`` adds a part proportional to the
+            distance (stereo depth errors grow with range).
+
+    Returns:
+        (N,) bool mask of the clique members. Returns immediately (O(N^2) memory).
+    """
+    P = np.asarray(P, dtype=np.float64)
+    Q = np.asarray(Q, dtype=np.float64)
+    n = len(P)
+    if n == 0:
+        return np.zeros(0, dtype=bool)
+    dP = np.sqrt(((P[:, None, :] - P[None, :, :]) ** 2).sum(-1))
+    dQ = np.sqrt(((Q[:, None, :] - Q[None, :, :]) ** 2).sum(-1))
+    A = np.abs(dP - dQ) <= (tol_m + rel_tol * np.maximum(dP, dQ))
+    np.fill_diagonal(A, False)
+    degree = A.sum(axis=1)
+    members = np.zeros(n, dtype=bool)
+    first = int(np.argmax(degree))
+    members[first] = True
+    candidates = A[first].copy()
+    while candidates.any():
+        # Among candidates, the one with most links to other candidates.
+        cidx = np.flatnonzero(candidates)
+        links = A[np.ix_(cidx, cidx)].sum(axis=1)
+        pick = int(cidx[int(np.argmax(links))])
+        members[pick] = True
+        candidates &= A[pick]
+        candidates[pick] = False
+    return members
+
+
+def pnp(
+    points_ref: npt.ArrayLike,
+    pts_px: npt.ArrayLike,
+    K: npt.ArrayLike,
+    method: str = "sqpnp",
+    ransac: bool = True,
+    reproj_px: float = 2.0,
+    max_iters: int = 100,
+    confidence: float = 0.999,
+    min_inliers: int = 8,
+    refine: bool = True,
+    guess_T_cur_ref: F64 | None = None,
+) -> Motion:
+    """Pose of the current camera from reference-frame 3D points and their current pixels.
+
+    Args:
+        points_ref: (N, 3) points in the reference camera frame, metres.
+        pts_px: (N, 2) their pixel positions in the current (undistorted) image.
+        K: (3, 3) intrinsic matrix.
+        method: ``"iterative"`` (Levenberg-Marquardt), ``"epnp"`` or ``"sqpnp"``; with
+            RANSAC the minimal samples are solved by OpenCV's kernel and the final fit on
+            all inliers by ``method``.
+        ransac: reject outliers with RANSAC (threshold ``reproj_px``).
+        refine: polish the inlier fit with ``cv2.solvePnPRefineLM``.
+        guess_T_cur_ref: initial guess for the iterative method (e.g. constant velocity).
+
+    Returns:
+        :class:`Motion`; ``ok`` is False with fewer than ``min_inliers`` inliers.
+
+    Raises:
+        EstimationError: unknown method.
+    """
+    if method not in PNP_METHODS:
+        raise EstimationError(f"unknown PnP method {method!r}; use one of {sorted(PNP_METHODS)}")
+    obj = np.ascontiguousarray(points_ref, dtype=np.float64).reshape(-1, 3)
+    img = np.ascontiguousarray(pts_px, dtype=np.float64).reshape(-1, 2)
+    Km = np.asarray(K, dtype=np.float64)
+    n = len(obj)
+    if n < max(6, min_inliers):
+        return _failed(n)
+    flags = PNP_METHODS[method]
+    use_guess = guess_T_cur_ref is not None and method == "iterative"
+    rvec0 = tvec0 = None
+    if use_guess:
+        assert guess_T_cur_ref is not None
+        rvec0 = cv2.Rodrigues(guess_T_cur_ref[:3, :3])[0]
+        tvec0 = guess_T_cur_ref[:3, 3].reshape(3, 1).copy()
+    try:
+        if ransac:
+            ok, rvec, tvec, inl = cv2.solvePnPRansac(
+                obj,
+                img,
+                Km,
+                None,
+                rvec=rvec0,
+                tvec=tvec0,
+                useExtrinsicGuess=use_guess,
+                iterationsCount=max_iters,
+                reprojectionError=reproj_px,
+                confidence=confidence,
+                flags=flags,
+            )
+            mask = np.zeros(n, dtype=bool)
+            if ok and inl is not None:
+                mask[inl.ravel()] = True
+        else:
+            ok, rvec, tvec = cv2.solvePnP(
+                obj, img, Km, None, rvec=rvec0, tvec=tvec0, useExtrinsicGuess=use_guess, flags=flags
+            )
+            mask = np.ones(n, dtype=bool)
+    except cv2.error as exc:
+        logger.debug("PnP failed: %s", exc)
+        return _failed(n)
+    if not ok or np.count_nonzero(mask) < min_inliers:
+        return _failed(n)
+    if refine:
+        rvec, tvec = cv2.solvePnPRefineLM(obj[mask], img[mask], Km, None, rvec, tvec)
+        # Re-select inliers with the refined pose.
+        proj, _ = cv2.projectPoints(obj, rvec, tvec, Km, None)
+        err2 = ((proj.reshape(-1, 2) - img) ** 2).sum(axis=1)
+        z = obj @ cv2.Rodrigues(rvec)[0][2] + float(tvec[2, 0])
+        mask = (err2 < reproj_px * reproj_px) & (z > 0)
+        if np.count_nonzero(mask) < min_inliers:
+            return _failed(n)
+    R = cv2.Rodrigues(rvec)[0]
+    return Motion(make_T(R, tvec.ravel()), mask, True)
+
+
+def refine_pose(
+    T_cur_ref: F64,
+    points_ref: npt.ArrayLike,
+    pts_px: npt.ArrayLike,
+    K: npt.ArrayLike,
+    disparity_px: npt.ArrayLike | None = None,
+    fb_px_m: float = 0.0,
+    huber_px: float = 1.0,
+    iterations: int = 4,
+) -> F64:
+    """Gauss-Newton polish of a pose on reprojection and (optionally) disparity residuals.
+
+    Per point: ``u, v`` reprojection residuals in the current image and, where a current
+    disparity is measured (stereo, or depth as ``fb / z``), ``fb / z_pred - d``, which pins
+    down the motion along the optical axis that image residuals alone constrain weakly.
+    Huber-weighted (IRLS), analytic Jacobian, a left perturbation ``T <- exp(xi) T``.
+
+    Args:
+        T_cur_ref: (4, 4) initial pose (e.g. from PnP RANSAC), inliers only below.
+        points_ref: (N, 3) reference-frame points.
+        pts_px: (N, 2) current pixels.
+        K: (3, 3) intrinsics.
+        disparity_px: (N,) current disparities (NaN where unknown), or None.
+        fb_px_m: ``fx * baseline`` of the disparities (pixel metres).
+        huber_px: Huber threshold of all residuals.
+        iterations: Gauss-Newton steps (stops early on convergence).
+
+    Returns:
+        The refined (4, 4) pose. Returns immediately (vectorised numpy).
+    """
+    X = np.asarray(points_ref, dtype=np.float64).reshape(-1, 3)
+    uv = np.asarray(pts_px, dtype=np.float64).reshape(-1, 2)
+    Km = np.asarray(K, dtype=np.float64)
+    fx, fy, cx, cy = Km[0, 0], Km[1, 1], Km[0, 2], Km[1, 2]
+    n = len(X)
+    if n < 4:
+        return T_cur_ref
+    d = None if disparity_px is None else np.asarray(disparity_px, dtype=np.float64).reshape(-1)
+    has_d = np.zeros(n, dtype=bool) if d is None or fb_px_m <= 0 else np.isfinite(d)
+    T = T_cur_ref.copy()
+    Xd = X[has_d]
+    dd = d[has_d] if d is not None else np.zeros(0)
+    nd = len(Xd)
+    # Stacked rows: u (n), v (n), disparity (nd); Jacobian columns [rho (3), phi (3)] of a
+    # left perturbation, written out per row so no (n, 3, 3) temporaries are needed.
+    J = np.empty((2 * n + nd, 6))
+    r = np.empty(2 * n + nd)
+    for _ in range(iterations):
+        Xc = X @ T[:3, :3].T + T[:3, 3]
+        x, y, z = Xc[:, 0], Xc[:, 1], Xc[:, 2]
+        if np.any(z <= 1e-6):
+            break
+        iz = 1.0 / z
+        xz, yz = x * iz, y * iz
+        r[:n] = fx * xz + cx - uv[:, 0]
+        r[n : 2 * n] = fy * yz + cy - uv[:, 1]
+        Ju, Jv = J[:n], J[n : 2 * n]
+        Ju[:, 0], Ju[:, 1], Ju[:, 2] = fx * iz, 0.0, -fx * xz * iz
+        Ju[:, 3], Ju[:, 4], Ju[:, 5] = -fx * xz * yz, fx * (1.0 + xz * xz), -fx * yz
+        Jv[:, 0], Jv[:, 1], Jv[:, 2] = 0.0, fy * iz, -fy * yz * iz
+        Jv[:, 3], Jv[:, 4], Jv[:, 5] = -fy * (1.0 + yz * yz), fy * xz * yz, fy * xz
+        if nd:
+            Xdc = Xd @ T[:3, :3].T + T[:3, 3]
+            izd = 1.0 / Xdc[:, 2]
+            k = fb_px_m * izd * izd
+            r[2 * n :] = fb_px_m * izd - dd
+            Jd = J[2 * n :]
+            Jd[:, 0], Jd[:, 1], Jd[:, 2] = 0.0, 0.0, -k
+            Jd[:, 3], Jd[:, 4], Jd[:, 5] = -k * Xdc[:, 1], k * Xdc[:, 0], 0.0
+        a = np.abs(r)
+        w = np.where(a <= huber_px, 1.0, huber_px / np.maximum(a, 1e-12))
+        Jw = J * w[:, None]
+        H = Jw.T @ J
+        g = Jw.T @ r
+        try:
+            xi = -np.linalg.solve(H, g)
+        except np.linalg.LinAlgError:
+            break
+        dT = np.eye(4)
+        dT[:3, :3] = cv2.Rodrigues(xi[3:])[0]
+        dT[:3, 3] = xi[:3]
+        T = dT @ T
+        if float(xi @ xi) < 1e-14:
+            break
+    return T
+
+
+def essential_metric(
+    px_ref: npt.ArrayLike,
+    px_cur: npt.ArrayLike,
+    K: npt.ArrayLike,
+    points_ref: npt.ArrayLike,
+    threshold_px: float = 1.0,
+    confidence: float = 0.999,
+    min_inliers: int = 12,
+) -> Motion:
+    """Relative pose from 2D-2D matches (5-point RANSAC + ``recoverPose``), metric scale from depth.
+
+    The essential matrix gives the rotation and the *direction* of translation. The scale
+    comes from the reference depths: for each inlier with a valid 3D point X (reference
+    frame) and normalised current ray x, ``x cross (R X + s t) = 0`` is linear in s; the
+    scale is the median of those per-point solutions (robust to bad depths).
+
+    Args:
+        px_ref, px_cur: (N, 2) matched pixels in the reference and current images.
+        K: (3, 3) intrinsics (both images).
+        points_ref: (N, 3) reference-frame 3D points of ``px_ref`` from depth; rows with a
+            non-finite or non-positive z are ignored for the scale.
+        threshold_px: RANSAC epipolar threshold.
+
+    Returns:
+        :class:`Motion` (``ok`` False when RANSAC, the cheirality check or the scale fail).
+    """
+    p0 = np.ascontiguousarray(px_ref, dtype=np.float64).reshape(-1, 2)
+    p1 = np.ascontiguousarray(px_cur, dtype=np.float64).reshape(-1, 2)
+    X = np.asarray(points_ref, dtype=np.float64).reshape(-1, 3)
+    Km = np.asarray(K, dtype=np.float64)
+    n = len(p0)
+    if n < max(8, min_inliers):
+        return _failed(n)
+    try:
+        E, emask = cv2.findEssentialMat(
+            p0, p1, Km, method=cv2.RANSAC, prob=confidence, threshold=threshold_px
+        )
+    except cv2.error as exc:
+        logger.debug("findEssentialMat failed: %s", exc)
+        return _failed(n)
+    if E is None or emask is None:
+        return _failed(n)
+    E = E[:3]
+    _, R, t, pmask = cv2.recoverPose(E, p0, p1, Km, mask=emask.copy())
+    mask = pmask.ravel() > 0
+    if np.count_nonzero(mask) < min_inliers:
+        return _failed(n)
+    t = t.ravel()
+    Kinv = np.linalg.inv(Km)
+    valid = mask & np.isfinite(X).all(axis=1) & (X[:, 2] > 0)
+    if np.count_nonzero(valid) < 3:
+        return _failed(n)
+    x = np.c_[p1[valid], np.ones(np.count_nonzero(valid))] @ Kinv.T
+    a = np.cross(x, X[valid] @ R.T)
+    b = np.cross(x, np.broadcast_to(t, x.shape))
+    bb = np.einsum("ni,ni->n", b, b)
+    good = bb > 1e-12
+    if np.count_nonzero(good) < 3:
+        return _failed(n)
+    s_all = -np.einsum("ni,ni->n", a[good], b[good]) / bb[good]
+    # Median, then a weighted mean over the points near it (|b|^2 weights well-conditioned points).
+    s_med = float(np.median(s_all))
+    mad = float(np.median(np.abs(s_all - s_med))) + 1e-9
+    near = np.abs(s_all - s_med) < 3.0 * 1.4826 * mad
+    w = bb[good][near]
+    s = float(np.sum(s_all[near] * w) / np.sum(w)) if w.sum() > 0 else s_med
+    if not math.isfinite(s):
+        return _failed(n)
+    # A negative s means depth disagrees with recoverPose's sign choice (tiny baselines);
+    # s * t is then the motion the depths support.
+    return Motion(make_T(R, s * t), mask, True)

@@ -1,0 +1,1282 @@
+"""Visual odometry pipelines: RGB-D (PnP, essential matrix, Kabsch), stereo, optical-flow velocity.
+
+Offline::
+
+    from flightkit.datasets.registry import open_sequence
+    from estimation.pipeline import run_vo
+
+    result = run_vo(open_sequence("/data/kitti06"), "stereo", progress=lambda i, n: ...)
+    result.write_tum("stereo.txt")                # T_world_camera, TUM format
+    result.trajectory("body")                     # T_world_body through T_body_camera
+    result.fps, result.stage_ms["motion"]         # speed and per-stage timings
+
+Live (one frame at a time, e.g. from the bus; publish ``FramePose`` from ``on_pose``)::
+
+    vo = VisualOdometry("rgbd-pnp", intrinsics, depth_intrinsics=intrinsics)
+    pose = vo.process(stamp_ns, gray, depth_m=depth)
+
+Methods (``Method``):
+    ``rgbd-pnp``        keyframe 3D points (depth) -> current pixels, PnP + RANSAC
+    ``rgbd-essential``  5-point essential matrix keyframe -> current, metric scale from depth
+    ``rgbd-kabsch``     3D-3D (depth in both frames), Kabsch in a vectorised RANSAC
+    ``stereo``          keyframe 3D points (sparse stereo) -> current pixels, PnP (RANSAC or
+                        rigidity max-clique inliers)
+    ``flow``            Shi-Tomasi + LK flow, 6-DoF velocity by 3-point RANSAC on the
+                        interaction matrix, depth from the depth image or the stereo
+                        altitude Z = f B / d, integrated to a pose
+
+Front end of the keyframe methods: grid-bucketed FAST corners, tracked by pyramidal LK with
+a forward-backward check from frame to frame, the tracks predicted by a constant-velocity
+prior; when tracking fails (fast motion) ORB features are matched between the keyframe
+and the current image instead (Hamming norm, ratio test). Every estimate passes a sanity
+check (speed, turn rate, inliers); a failed one is replaced by the constant-velocity
+prediction and flagged ``Quality.PREDICTED``, never silently dropped. Keyframes are chosen
+by parallax and motion (:class:`~estimation.keyframes.KeyframePolicy`); an optional local
+bundle adjustment refines the last N keyframes.
+
+Frames: camera frames are OpenCV; the world frame is the first camera's unless
+``T_world_camera0`` (or ``init_from_groundtruth``) says otherwise; body poses are
+``T_world_body = T_world_camera @ inv(T_body_camera)``.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from estimation.features import DescriptorExtractor, GridDetector, as_gray, shi_tomasi
+from estimation.flow import integrate_velocity, stereo_altitude_m, track_klt, velocity_ransac
+from estimation.keyframes import KeyframePolicy
+from estimation.matching import match_descriptors, match_stereo_rows
+from estimation.motion import (
+    Motion,
+    essential_metric,
+    invert,
+    pnp,
+    ransac_rigid,
+    refine_pose,
+    rigidity_inliers,
+    rotation_angle_rad,
+)
+from estimation.stereo import StereoRig, sparse_disparity, triangulate
+from flightkit.errors import EstimationError
+from flightkit.frames import Transform
+
+if TYPE_CHECKING:
+    from flightkit.datasets.base import CameraIntrinsics, Frame, Sequence
+    from flightkit.datasets.trajectory import Trajectory
+
+__all__ = ["STAGES", "FramePose", "Method", "Quality", "VisualOdometry", "VoOptions", "VoResult", "run_vo"]
+
+logger = logging.getLogger(__name__)
+
+F64 = npt.NDArray[np.float64]
+F32 = npt.NDArray[np.float32]
+
+STAGES = ("track", "motion", "keyframe", "ba", "total")
+"""Per-frame timing stages, milliseconds: front-end tracking (pyramid + LK), motion
+estimation (incl. fallback), keyframe creation (detection + 3D), bundle adjustment, total."""
+
+
+class Method(enum.StrEnum):
+    RGBD_PNP = "rgbd-pnp"
+    RGBD_ESSENTIAL = "rgbd-essential"
+    RGBD_KABSCH = "rgbd-kabsch"
+    STEREO = "stereo"
+    FLOW = "flow"
+
+    @property
+    def needs_depth(self) -> bool:
+        return self in (Method.RGBD_PNP, Method.RGBD_ESSENTIAL, Method.RGBD_KABSCH)
+
+
+class Quality(enum.IntEnum):
+    """How a pose was obtained."""
+
+    INIT = 0  #: first frame (the pose is the start pose)
+    GOOD = 1  #: estimate with enough inliers
+    WEAK = 2  #: estimate accepted, but with few inliers (< 2 x min_inliers)
+    PREDICTED = 3  #: estimate failed or was implausible; constant-velocity prediction used
+    FALLBACK = 4  #: tracking failed; ORB matching against the keyframe recovered the pose
+
+
+@dataclass(frozen=True, slots=True)
+class VoOptions:
+    """Tuning of the pipelines (defaults suit 320x240 to 1280x720 at 10-60 Hz).
+
+    Attributes:
+        max_features: corners kept per keyframe.
+        cell_px: grid cell of the corner detector (0: chosen from image size and budget).
+        fast_threshold: FAST threshold.
+        klt_win_px, klt_levels: LK window and pyramid levels.
+        fb_max_px: forward-backward tolerance of tracks.
+        pnp_method: ``"iterative"``, ``"epnp"`` or ``"sqpnp"``.
+        reproj_px: PnP RANSAC threshold.
+        inliers: ``"ransac"`` or ``"rigidity"`` (stereo: max-clique of rigid pairs first).
+        kabsch_threshold_m: rgbd-kabsch inlier threshold at 1 m (grows with depth squared).
+        essential_threshold_px: epipolar RANSAC threshold.
+        essential_min_parallax_px: below this median image motion since the keyframe the
+            essential matrix is ill-conditioned; ``rgbd-essential`` then solves the step by
+            PnP on the same tracks (and keeps the keyframe until the parallax is there).
+        min_inliers: fewer inliers -> the estimate is rejected.
+        max_speed_m_s, max_rate_rad_s: sanity limits of one step.
+        min_depth_m, max_depth_m: accepted depth range (stereo and depth images).
+        max_depth_baselines: stereo points farther than this many baselines are not used
+            (depth error grows with the square of range; ORB-SLAM calls points within 35-40
+            baselines "close"; 60 measured best on KITTI, trading translation for rotation).
+        min_disparity_px: stereo points with a smaller disparity are not used (their depth
+            is too uncertain for PnP: 0.25 px of disparity noise is 8 % of depth at 3 px).
+        refine_with_depth: polish PnP poses on the current frame's depth too (stereo
+            disparity or depth image), :func:`~estimation.motion.refine_pose`.
+        fuse_depth: fuse each frame's depth measurement of tracked points into their 3D
+            estimate (inverse variance, sigma_z ~ z^2), so depth improves while a point is
+            tracked and approaches; kept points carry it into the next keyframe.
+        stereo_fb_check: also check left-right stereo matches right-to-left (else the row
+            and disparity-range checks alone reject bad matches).
+        orb_fallback: match ORB against the keyframe when tracking fails.
+        keyframes: the keyframe policy.
+        ba_window: local bundle adjustment over this many keyframes (0: off).
+        flow_threshold_px: flow RANSAC threshold (pixels per frame).
+        flow_depth: flow with stereo (no depth image): ``"altitude"`` (one depth for all
+            points, ``Z = f B / d`` from row-consistent ORB matches: a camera looking down at
+            flat ground) or ``"stereo"`` (each point's own depth by sparse stereo; any scene).
+        altitude_every: flow with stereo: recompute the altitude every N frames.
+        seed: RANSAC random seed (repeatable runs).
+    """
+
+    max_features: int = 300
+    cell_px: int = 0
+    fast_threshold: int = 20
+    klt_win_px: int = 11
+    klt_levels: int = 3
+    fb_max_px: float = 1.0
+    pnp_method: str = "iterative"
+    reproj_px: float = 3.0
+    inliers: str = "ransac"
+    kabsch_threshold_m: float = 0.02
+    essential_threshold_px: float = 1.0
+    essential_min_parallax_px: float = 3.0
+    min_inliers: int = 12
+    max_speed_m_s: float = 40.0
+    max_rate_rad_s: float = 8.0
+    min_depth_m: float = 0.2
+    max_depth_m: float = 60.0
+    min_disparity_px: float = 3.0
+    max_depth_baselines: float = 60.0
+    refine_with_depth: bool = True
+    fuse_depth: bool = True
+    stereo_fb_check: bool = False
+    orb_fallback: bool = True
+    keyframes: KeyframePolicy = field(default_factory=KeyframePolicy)
+    ba_window: int = 0
+    flow_threshold_px: float = 1.0
+    flow_depth: str = "altitude"
+    altitude_every: int = 5
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.inliers not in ("ransac", "rigidity"):
+            raise EstimationError(f"VoOptions.inliers is {self.inliers!r}; use 'ransac' or 'rigidity'")
+        if self.pnp_method not in ("iterative", "epnp", "sqpnp"):
+            raise EstimationError(
+                f"VoOptions.pnp_method is {self.pnp_method!r}; use iterative, epnp or sqpnp"
+            )
+        if self.flow_depth not in ("altitude", "stereo"):
+            raise EstimationError(f"VoOptions.flow_depth is {self.flow_depth!r}; use 'altitude' or 'stereo'")
+        if self.max_features < 20:
+            raise EstimationError(
+                f"VoOptions.max_features is {self.max_features}; use at least 20 (300 is typical)"
+            )
+        if self.klt_win_px < 5 or self.klt_levels < 0:
+            raise EstimationError(
+                f"VoOptions.klt_win_px={self.klt_win_px}, klt_levels={self.klt_levels}; "
+                "use a window >= 5 px and levels >= 0"
+            )
+        if not 0 < self.min_depth_m < self.max_depth_m:
+            raise EstimationError(
+                f"VoOptions depth range [{self.min_depth_m}, {self.max_depth_m}] m is empty; "
+                "set 0 < min < max"
+            )
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class FramePose:
+    """The VO output of one frame.
+
+    Attributes:
+        index: frame counter (0-based).
+        stamp_ns: frame stamp.
+        T_world_camera, T_world_body: (4, 4) poses.
+        n_inliers: correspondences supporting the estimate (0 when predicted/initial).
+        quality: :class:`Quality`.
+        keyframe: this frame became a keyframe.
+        stage_ms: per-stage processing (wall) time of this frame (keys from :data:`STAGES`).
+        cpu_ms: CPU time of this thread for the frame (differs from the wall time when the
+            core is shared).
+    """
+
+    index: int
+    stamp_ns: int
+    T_world_camera: F64
+    T_world_body: F64
+    n_inliers: int
+    quality: Quality
+    keyframe: bool
+    stage_ms: dict[str, float]
+    cpu_ms: float = 0.0
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class VoResult:
+    """All frames of one VO run.
+
+    Attributes:
+        method: the method name.
+        sequence: the sequence name.
+        stamps_ns: (N,) int64.
+        T_world_camera, T_world_body: (N, 4, 4).
+        n_inliers: (N,) int.
+        quality: (N,) int8 values of :class:`Quality`.
+        keyframe: (N,) bool.
+        stage_ms: stage -> (N,) float64 milliseconds (:data:`STAGES`).
+        wall_s: wall time of the run including image loading.
+        image_size: (width, height) processed.
+        cpu_ms: (N,) per-frame CPU time of the processing thread.
+    """
+
+    method: str
+    sequence: str
+    stamps_ns: npt.NDArray[np.int64]
+    T_world_camera: F64
+    T_world_body: F64
+    n_inliers: npt.NDArray[np.int64]
+    quality: npt.NDArray[np.int8]
+    keyframe: npt.NDArray[np.bool_]
+    stage_ms: dict[str, F64]
+    wall_s: float
+    image_size: tuple[int, int]
+    cpu_ms: F64 = field(default_factory=lambda: np.zeros(0))
+
+    def __len__(self) -> int:
+        return len(self.stamps_ns)
+
+    @property
+    def fps(self) -> float:
+        """Frames per second of processing (images already decoded), from the total stage."""
+        total = float(np.sum(self.stage_ms["total"]))
+        return len(self) / (total * 1e-3) if total > 0 else math.inf
+
+    @property
+    def fps_cpu(self) -> float:
+        """Frames per CPU second of the processing thread (what one dedicated core would do)."""
+        total = float(np.sum(self.cpu_ms))
+        return len(self) / (total * 1e-3) if total > 0 else math.inf
+
+    def trajectory(self, frame: str = "camera") -> Trajectory:
+        """The poses as a :class:`~flightkit.datasets.trajectory.Trajectory` (``"camera"`` or ``"body"``)."""
+        from flightkit.datasets.trajectory import Trajectory
+
+        if frame not in ("camera", "body"):
+            raise EstimationError(f"trajectory frame must be 'camera' or 'body', got {frame!r}")
+        mats = self.T_world_camera if frame == "camera" else self.T_world_body
+        return Trajectory.from_matrices(self.stamps_ns, mats, name=f"{self.method}")
+
+    def write_tum(self, path: str | Path, frame: str = "camera") -> Path:
+        """Write the trajectory as a TUM file; returns the path."""
+        from flightkit.datasets.trajectory import write_tum
+
+        return write_tum(
+            path, self.trajectory(frame), header=f"flightkit vo {self.method} on {self.sequence} ({frame})"
+        )
+
+    def summary(self) -> dict[str, float]:
+        """Mean per-stage milliseconds and frames/s."""
+        out = {f"{k}_ms": float(np.mean(v)) if len(v) else 0.0 for k, v in self.stage_ms.items()}
+        out["fps"] = self.fps
+        return out
+
+
+# ---------------------------------------------------------------------------------------------
+class _Timer:
+    __slots__ = ("_cpu0", "_t", "ms")
+
+    def __init__(self) -> None:
+        self.ms = dict.fromkeys(STAGES, 0.0)
+        self._t = time.perf_counter()
+        self._cpu0 = time.thread_time()
+
+    def cpu_ms(self) -> float:
+        return (time.thread_time() - self._cpu0) * 1e3
+
+    def lap(self, stage: str) -> None:
+        now = time.perf_counter()
+        self.ms[stage] += (now - self._t) * 1e3
+        self._t = now
+
+
+def _scale_motion(T_step: F64, factor: float) -> F64:
+    """Scale a relative motion (constant velocity for a different dt)."""
+    if abs(factor - 1.0) < 1e-3:
+        return T_step.copy()
+    rv = cv2.Rodrigues(T_step[:3, :3])[0] * factor
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(rv)[0]
+    T[:3, 3] = T_step[:3, 3] * factor
+    return T
+
+
+class VisualOdometry:
+    """Streaming visual odometry for one camera (call :meth:`process` per frame, in order).
+
+    Args:
+        method: a :class:`Method` or its name.
+        intrinsics: the camera of the (left / colour) images.
+        baseline_m: stereo baseline (``stereo``, and ``flow`` without depth).
+        depth_intrinsics: the camera of the depth images, when it differs from ``intrinsics``
+            (7-Scenes); depth pixels are looked up through the two pinhole models.
+        T_body_camera: camera mounting (default: identity, the camera is the body).
+        T_world_camera0: the first camera pose (default: identity).
+        options: :class:`VoOptions`.
+        on_pose: called with every :class:`FramePose` (e.g. to publish on the bus).
+
+    Raises:
+        EstimationError: unknown method, or a method without the sensor it needs.
+    """
+
+    def __init__(
+        self,
+        method: Method | str,
+        intrinsics: CameraIntrinsics,
+        baseline_m: float | None = None,
+        depth_intrinsics: CameraIntrinsics | None = None,
+        T_body_camera: Transform | None = None,
+        T_world_camera0: Transform | None = None,
+        options: VoOptions | None = None,
+        on_pose: Callable[[FramePose], None] | None = None,
+    ) -> None:
+        try:
+            self.method = Method(method)
+        except ValueError as exc:
+            names = ", ".join(m.value for m in Method)
+            raise EstimationError(f"unknown VO method {method!r}; use one of {names}") from exc
+        self.opts = options or VoOptions()
+        if self.method is Method.STEREO and not baseline_m:
+            raise EstimationError("method 'stereo' needs a stereo baseline; the sequence has no right camera")
+        self.intr = intrinsics
+        self.K = intrinsics.K
+        self.dist = intrinsics.dist_array if intrinsics.is_distorted else None
+        self.rig = (
+            StereoRig(intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, float(baseline_m))
+            if baseline_m
+            else None
+        )
+        self.depth_intr = depth_intrinsics
+        self.T_body_camera = (T_body_camera or Transform.identity()).as_matrix()
+        self.T_camera_body = invert(self.T_body_camera)
+        self.T_world_cam = (T_world_camera0 or Transform.identity()).as_matrix()
+        self.on_pose = on_pose
+        w, h = intrinsics.width, intrinsics.height
+        cell = self.opts.cell_px or max(12, int(math.sqrt(w * h / self.opts.max_features) * 1.1))
+        self.grid = GridDetector(self.opts.max_features, cell, self.opts.fast_threshold, border_px=8)
+        self.orb = DescriptorExtractor("orb", 1000)
+        self.rng = np.random.default_rng(self.opts.seed)
+        self.index = 0
+        # Frame-to-frame state
+        self.prev_pyr: npt.NDArray[np.uint8] | None = None
+        self.prev_stamp_ns = 0
+        self.T_step: F64 | None = None  # last accepted T_cur_prev
+        self.step_dt_s = 0.0
+        # Keyframe state
+        self.kf_X = np.empty((0, 3))
+        self.kf_px = np.empty((0, 2), np.float32)
+        self.kf_ids = np.empty(0, np.int64)
+        self.trk_px = np.empty((0, 2), np.float32)
+        self.kf_n0 = 0
+        self.kf_w = np.empty(0)
+        self._meas: tuple[npt.NDArray[np.intp], F64] | None = None
+        self.T_world_kf = self.T_world_cam.copy()
+        self.T_prev_kf = np.eye(4)
+        self.kf_since = 0
+        self.kf_gray: npt.NDArray[np.uint8] | None = None
+        self.kf_right: npt.NDArray[np.uint8] | None = None
+        self.kf_depth: F32 | None = None
+        self.next_id = 0
+        self.kf_orb: tuple[Any, F64, npt.NDArray[np.bool_]] | None = None
+        # Flow state
+        self.flow_pts = np.empty((0, 2), np.float32)
+        self.altitude_m = math.nan
+        self.prev_depth: F32 | None = None
+        self.flow_Z = np.empty(0)  # per-point stereo depth of flow_pts (flow_depth="stereo")
+        # Local BA window: list of (T_world_kf, ids, px_undistorted, disparity_px)
+        self.ba_window: list[tuple[F64, npt.NDArray[np.int64], F64, F64]] = []
+        self.ba_baseline_m = float(baseline_m) if baseline_m else 0.1  # virtual baseline for depth
+        self.landmarks: dict[int, F64] = {}
+
+    # ------------------------------------------------------------------ helpers
+    def _undistort(self, px: F32) -> F64:
+        if self.dist is None or len(px) == 0:
+            return np.asarray(px, dtype=np.float64)
+        out = cv2.undistortPoints(px.reshape(-1, 1, 2).astype(np.float64), self.K, self.dist, P=self.K)
+        return np.asarray(out.reshape(-1, 2), dtype=np.float64)
+
+    def _backproject(self, px_undist: F64, z: F64) -> F64:
+        X = np.empty((len(px_undist), 3))
+        X[:, 0] = (px_undist[:, 0] - self.intr.cx) / self.intr.fx * z
+        X[:, 1] = (px_undist[:, 1] - self.intr.cy) / self.intr.fy * z
+        X[:, 2] = z
+        return X
+
+    def _depth_at(self, depth_m: F32, px: F32) -> F64:
+        """Depth (metres, NaN where unknown or at a depth edge) at image pixels."""
+        if len(px) == 0:
+            return np.empty(0)
+        uv = np.asarray(px, dtype=np.float64)
+        di = self.depth_intr
+        if di is not None and (di.fx != self.intr.fx or di.cx != self.intr.cx or di.width != self.intr.width):
+            uv = np.c_[
+                (uv[:, 0] - self.intr.cx) * di.fx / self.intr.fx + di.cx,
+                (uv[:, 1] - self.intr.cy) * di.fy / self.intr.fy + di.cy,
+            ]
+        h, w = depth_m.shape
+        u = np.rint(uv[:, 0]).astype(np.intp)
+        v = np.rint(uv[:, 1]).astype(np.intp)
+        inside = (u >= 1) & (u < w - 1) & (v >= 1) & (v < h - 1)
+        z = np.full(len(px), np.nan)
+        ui, vi = u[inside], v[inside]
+        c = depth_m[vi, ui].astype(np.float64)
+        nb = np.stack(
+            [depth_m[vi - 1, ui], depth_m[vi + 1, ui], depth_m[vi, ui - 1], depth_m[vi, ui + 1]]
+        ).astype(np.float64)
+        spread = nb.max(axis=0) - nb.min(axis=0)
+        good = (c > 0) & (nb.min(axis=0) > 0) & (spread < 0.03 * c + 0.01)
+        good &= (c >= self.opts.min_depth_m) & (c <= self.opts.max_depth_m)
+        z[np.flatnonzero(inside)[good]] = c[good]
+        return z
+
+    def _points_3d(
+        self,
+        px: F32,
+        right_pyr: npt.NDArray[np.uint8] | None,
+        left_pyr: npt.NDArray[np.uint8] | None,
+        depth_m: F32 | None,
+        init_disp: F32 | float = 0.0,
+        max_depth_m: float | None = None,
+    ) -> tuple[F64, npt.NDArray[np.bool_]]:
+        """3D points (camera frame) for pixels, from stereo or depth."""
+        if depth_m is not None and self.method is not Method.STEREO:
+            z = self._depth_at(depth_m, px)
+            ok = np.isfinite(z)
+            X = self._backproject(self._undistort(px), np.where(ok, z, 1.0))
+            return X, ok
+        if right_pyr is None or left_pyr is None or self.rig is None:
+            raise EstimationError(f"method {self.method.value!r} needs depth or a stereo pair in every frame")
+        disp, ok = sparse_disparity(
+            left_pyr,
+            right_pyr,
+            px,
+            init_disp,
+            fb_max_px=self.opts.fb_max_px if self.opts.stereo_fb_check else None,
+            win_px=self.opts.klt_win_px,
+            levels=self.opts.klt_levels,
+            min_disparity_px=self.opts.min_disparity_px,
+        )
+        zmax = self._max_stereo_depth_m() if max_depth_m is None else max_depth_m
+        X, ok2 = triangulate(px, disp, self.rig, self.opts.min_depth_m, zmax)
+        return X, ok & ok2
+
+    def _max_stereo_depth_m(self) -> float:
+        b = self.rig.baseline_m if self.rig is not None else 0.0
+        return (
+            min(self.opts.max_depth_m, self.opts.max_depth_baselines * b) if b > 0 else self.opts.max_depth_m
+        )
+
+    def _plausible(self, T_cur_prev: F64, dt_s: float) -> bool:
+        dt = max(dt_s, 1e-3)
+        speed = float(np.linalg.norm(T_cur_prev[:3, 3])) / dt
+        rate = rotation_angle_rad(T_cur_prev[:3, :3]) / dt
+        return speed <= self.opts.max_speed_m_s and rate <= self.opts.max_rate_rad_s
+
+    def _predict(self, dt_s: float) -> F64:
+        if self.T_step is None or self.step_dt_s <= 0:
+            return np.eye(4)
+        return _scale_motion(self.T_step, dt_s / self.step_dt_s)
+
+    def _emit(self, stamp_ns: int, n_inl: int, q: Quality, kf: bool, timer: _Timer) -> FramePose:
+        timer.ms["total"] = sum(v for k, v in timer.ms.items() if k != "total")
+        pose = FramePose(
+            self.index,
+            stamp_ns,
+            self.T_world_cam.copy(),
+            self.T_world_cam @ self.T_camera_body,
+            n_inl,
+            q,
+            kf,
+            timer.ms,
+            timer.cpu_ms(),
+        )
+        self.index += 1
+        if self.on_pose is not None:
+            self.on_pose(pose)
+        return pose
+
+    # ------------------------------------------------------------------ main entry
+    def process(
+        self,
+        stamp_ns: int,
+        gray: npt.NDArray[np.uint8],
+        right_gray: npt.NDArray[np.uint8] | None = None,
+        depth_m: F32 | None = None,
+    ) -> FramePose:
+        """Process one frame (images as taken at ``stamp_ns``) and return its pose.
+
+        Blocks for the processing time only (no IO). Frames must come in time order.
+
+        Raises:
+            EstimationError: the frame lacks the depth or right image the method needs.
+        """
+        gray = as_gray(gray)
+        if self.method.needs_depth and depth_m is None:
+            raise EstimationError(
+                f"method {self.method.value!r} needs a depth image in every frame; use 'stereo' or 'flow'"
+            )
+        if self.method is Method.FLOW:
+            return self._process_flow(stamp_ns, gray, right_gray, depth_m)
+        return self._process_keyframe(stamp_ns, gray, right_gray, depth_m)
+
+    # ------------------------------------------------------------------ keyframe methods
+    def _make_keyframe(
+        self,
+        gray: npt.NDArray[np.uint8],
+        pyr: npt.NDArray[np.uint8],
+        right_gray: npt.NDArray[np.uint8] | None,
+        depth_m: F32 | None,
+        keep_px: F32,
+        keep_ids: npt.NDArray[np.int64],
+        keep_X_cur: F64 | None,
+        keep_w: F64 | None,
+        remeasure: bool = True,
+    ) -> None:
+        """Turn the current frame into the keyframe: keep tracked points, add grid corners, 3D.
+
+        Kept points carry their fused 3D estimate (moved into the new keyframe's frame); with
+        ``remeasure`` they are measured again here and fused, else (this frame's measurement
+        was already fused) only the new corners are measured.
+        """
+        n_keep = len(keep_px)
+        new_px = self.grid.detect(gray, existing=keep_px, budget=self.opts.max_features - n_keep)
+        ids_new = np.arange(self.next_id, self.next_id + len(new_px))
+        self.next_id += len(new_px)
+        fb_init = 0.0
+        d_keep = np.zeros(0, np.float32)
+        if self.method is Method.STEREO and self.rig is not None and keep_X_cur is not None and n_keep:
+            fb = self.rig.fx * self.rig.baseline_m
+            d_keep = (fb / np.maximum(keep_X_cur[:, 2], 1e-3)).astype(np.float32)
+            fb_init = float(np.median(d_keep))
+        if remeasure or keep_X_cur is None or n_keep == 0:
+            px_m = np.concatenate([keep_px.astype(np.float32), new_px]) if n_keep else new_px
+            init: F32 | float = (
+                np.concatenate([d_keep, np.full(len(new_px), fb_init, np.float32)])
+                if len(d_keep)
+                else fb_init
+            )
+            X_m, ok_m = self._points_3d(px_m, right_gray, pyr, depth_m, init)
+            X_k, ok_k = X_m[:n_keep], ok_m[:n_keep]
+            X_n, ok_n = X_m[n_keep:], ok_m[n_keep:]
+        else:
+            X_n, ok_n = self._points_3d(new_px, right_gray, pyr, depth_m, fb_init)
+            X_k, ok_k = np.empty((n_keep, 3)), np.zeros(n_keep, dtype=bool)
+        # Kept points: fuse the fresh measurement (if any) with the carried estimate.
+        if keep_X_cur is not None and n_keep:
+            assert keep_w is not None
+            w_new = np.where(ok_k, self._depth_weight(np.where(ok_k, X_k[:, 2], 1.0)), 0.0)
+            wsum = keep_w + w_new
+            X_keep = (
+                keep_X_cur * keep_w[:, None] + np.where(ok_k[:, None], X_k, 0.0) * w_new[:, None]
+            ) / wsum[:, None]
+            ok_keep = np.isfinite(X_keep).all(axis=1) & (X_keep[:, 2] > self.opts.min_depth_m)
+        else:
+            X_keep, wsum, ok_keep = np.empty((0, 3)), np.empty(0), np.zeros(0, dtype=bool)
+        w_n = self._depth_weight(np.where(ok_n, X_n[:, 2], 1.0))
+        self.kf_X = np.concatenate([X_keep[ok_keep], X_n[ok_n]])
+        self.kf_w = np.concatenate([wsum[ok_keep], w_n[ok_n]])
+        self.kf_px = np.ascontiguousarray(
+            np.concatenate([keep_px[ok_keep].astype(np.float32), new_px[ok_n]]), dtype=np.float32
+        )
+        self.kf_ids = np.concatenate([keep_ids[ok_keep], ids_new[ok_n]]).astype(np.int64)
+        self.trk_px = self.kf_px.copy()
+        self.kf_n0 = len(self.kf_X)
+        self.T_world_kf = self.T_world_cam.copy()
+        self.T_prev_kf = np.eye(4)
+        self.kf_since = 0
+        self.kf_gray = gray
+        self.kf_right = right_gray
+        self.kf_depth = depth_m
+        self.kf_orb = None
+
+    def _kf_orb(self) -> tuple[Any, F64, npt.NDArray[np.bool_]]:
+        """ORB features of the keyframe with their 3D points (computed on first need)."""
+        if self.kf_orb is None:
+            assert self.kf_gray is not None
+            f = self.orb.extract(self.kf_gray)
+            if self.method is Method.STEREO:
+                assert self.kf_right is not None and self.rig is not None
+                # Row-consistent ORB matches give disparities; LK along the rows (started at
+                # the ORB disparity, or the keyframe's median) fills in the rest.
+                fr = self.orb.extract(self.kf_right)
+                il, _, disp_orb = match_stereo_rows(f, fr, max_disparity_px=self.intr.width / 2)
+                init = np.full(len(f), np.nan, np.float32)
+                init[il] = disp_orb
+                fb = self.rig.fx * self.rig.baseline_m
+                med = float(np.median(fb / self.kf_X[:, 2])) if len(self.kf_X) else 0.0
+                init = np.where(np.isfinite(init), init, med).astype(np.float32)
+                # Far points too: recovering the pose matters more here than their depth noise.
+                X, ok = self._points_3d(
+                    f.pts_px, self.kf_right, self.kf_gray, None, init, self.opts.max_depth_m
+                )
+            else:
+                assert self.kf_depth is not None
+                z = self._depth_at(self.kf_depth, f.pts_px)
+                ok = np.isfinite(z)
+                X = self._backproject(self._undistort(f.pts_px), np.where(ok, z, 1.0))
+            self.kf_orb = (f, X, ok)
+        return self.kf_orb
+
+    def _orb_fallback(self, gray: npt.NDArray[np.uint8], guess: F64) -> Motion | None:
+        f_kf, X_kf, ok_kf = self._kf_orb()
+        f_cur = self.orb.extract(gray)
+        ia, ib = match_descriptors(f_kf, f_cur, ratio=0.8, mutual=True)
+        logger.debug("ORB fallback: %d matches, %d with 3D", len(ia), int(np.count_nonzero(ok_kf[ia])))
+        keep = ok_kf[ia]
+        ia, ib = ia[keep], ib[keep]
+        if len(ia) < self.opts.min_inliers:
+            return None
+        m = pnp(
+            X_kf[ia],
+            self._undistort(f_cur.pts_px[ib]),
+            self.K,
+            method=self.opts.pnp_method,
+            reproj_px=self.opts.reproj_px * 1.5,
+            min_inliers=self.opts.min_inliers,
+            guess_T_cur_ref=guess,
+        )
+        return m if m.ok else None
+
+    def _estimate(
+        self,
+        X_kf: F64,
+        px_kf: F32,
+        px_cur: F32,
+        depth_m: F32 | None,
+        guess: F64,
+        right_pyr: npt.NDArray[np.uint8] | None,
+        pyr: npt.NDArray[np.uint8],
+        right_gray: npt.NDArray[np.uint8] | None = None,
+    ) -> Motion:
+        o = self.opts
+        und_cur = self._undistort(px_cur)
+        if self.method is Method.RGBD_ESSENTIAL:
+            und_kf = self._undistort(px_kf)
+            parallax = float(np.median(np.linalg.norm(und_cur - und_kf, axis=1)))
+            if parallax >= o.essential_min_parallax_px:
+                m = essential_metric(
+                    und_kf,
+                    und_cur,
+                    self.K,
+                    X_kf,
+                    threshold_px=o.essential_threshold_px,
+                    min_inliers=o.min_inliers,
+                )
+                if m.ok:
+                    return m
+            return pnp(
+                X_kf,
+                und_cur,
+                self.K,
+                method=o.pnp_method,
+                reproj_px=o.reproj_px,
+                min_inliers=o.min_inliers,
+                guess_T_cur_ref=guess,
+            )
+        if self.method is Method.RGBD_KABSCH:
+            assert depth_m is not None
+            z = self._depth_at(depth_m, px_cur)
+            ok = np.isfinite(z)
+            X_cur = self._backproject(und_cur, np.where(ok, z, 1.0))
+            idx = np.flatnonzero(ok)
+            # Kinect-like depth noise grows with z^2: threshold scaled by the mean squared depth.
+            zz = float(np.mean(X_kf[idx, 2] ** 2)) if len(idx) else 1.0
+            m = ransac_rigid(
+                X_kf[idx],
+                X_cur[idx],
+                threshold_m=o.kabsch_threshold_m * max(1.0, zz),
+                min_inliers=o.min_inliers,
+                rng=self.rng,
+            )
+            mask = np.zeros(len(px_cur), dtype=bool)
+            mask[idx] = m.inliers
+            return Motion(m.T_cur_ref, mask, m.ok)
+        sel = np.ones(len(px_cur), dtype=bool)
+        if self.method is Method.STEREO and o.inliers == "rigidity" and right_pyr is not None:
+            init = (self.rig.fx * self.rig.baseline_m / np.maximum(X_kf[:, 2], 1e-3)).astype(np.float32)  # type: ignore[union-attr]
+            X_cur, ok = self._points_3d(px_cur, right_pyr, pyr, None, init)
+            sel = np.zeros(len(px_cur), dtype=bool)
+            idx = np.flatnonzero(ok)
+            if len(idx) >= o.min_inliers:
+                sel[idx[rigidity_inliers(X_kf[idx], X_cur[idx], tol_m=0.05, rel_tol=0.03)]] = True
+            if np.count_nonzero(sel) < o.min_inliers:
+                sel[:] = True
+        idx = np.flatnonzero(sel)
+        m = pnp(
+            X_kf[idx],
+            und_cur[idx],
+            self.K,
+            method=o.pnp_method,
+            reproj_px=o.reproj_px,
+            min_inliers=o.min_inliers,
+            guess_T_cur_ref=guess,
+        )
+        mask = np.zeros(len(px_cur), dtype=bool)
+        mask[idx] = m.inliers
+        T = m.T_cur_ref
+        if m.ok and o.refine_with_depth:
+            T = self._refine(T, X_kf[mask], px_cur[mask], und_cur[mask], depth_m, pyr, right_gray)
+            if self._meas is not None:
+                self._meas = (np.flatnonzero(mask)[self._meas[0]], self._meas[1])
+        return Motion(T, mask, m.ok)
+
+    def _refine(
+        self,
+        T: F64,
+        X_kf: F64,
+        px: F32,
+        und: F64,
+        depth_m: F32 | None,
+        gray: npt.NDArray[np.uint8],
+        right_gray: npt.NDArray[np.uint8] | None,
+    ) -> F64:
+        """Polish a PnP pose with the current frame's own depth (disparity residuals)."""
+        if self.method is Method.STEREO:
+            if right_gray is None or self.rig is None:
+                return refine_pose(T, X_kf, und, self.K)
+            fb = self.rig.fx * self.rig.baseline_m
+            z_pred = X_kf @ T[2, :3] + T[2, 3]
+            init = (fb / np.maximum(z_pred, 1e-3)).astype(np.float32)
+            disp, ok = sparse_disparity(
+                gray,
+                right_gray,
+                px,
+                init,
+                fb_max_px=None,
+                win_px=self.opts.klt_win_px,
+                levels=1,  # the predicted disparity is close: a shallow pyramid is enough
+                min_disparity_px=self.opts.min_disparity_px,
+            )
+            # A disparity far from the prediction is a mismatch, not a measurement.
+            ok &= np.abs(disp - init) < np.maximum(2.0, 0.3 * init)
+            d = np.where(ok, disp, np.nan)
+        elif depth_m is not None:
+            fb = self.intr.fx * self.ba_baseline_m
+            z = self._depth_at(depth_m, px)
+            d = fb / z
+        else:
+            return refine_pose(T, X_kf, und, self.K)
+        good = np.isfinite(d)
+        X_meas = self._backproject(und[good], fb / d[good])
+        self._meas = (np.flatnonzero(good), X_meas)
+        return refine_pose(T, X_kf, und, self.K, d, fb, huber_px=1.0)
+
+    def _depth_weight(self, z: F64) -> F64:
+        """Inverse variance of a depth measurement (stereo and Kinect-like: sigma_z ~ z^2)."""
+        return 1.0 / np.maximum(z, 1e-3) ** 4
+
+    def _fuse(self, gidx: npt.NDArray[np.intp], X_cur: F64, T_cur_kf: F64) -> None:
+        """Fuse current-frame 3D measurements of keyframe points into ``kf_X`` (inverse variance)."""
+        if not len(gidx):
+            return
+        T_kf_cur = invert(T_cur_kf)
+        X_new = X_cur @ T_kf_cur[:3, :3].T + T_kf_cur[:3, 3]
+        w_new = self._depth_weight(X_cur[:, 2])
+        w_old = self.kf_w[gidx]
+        wsum = w_old + w_new
+        self.kf_X[gidx] = (self.kf_X[gidx] * w_old[:, None] + X_new * w_new[:, None]) / wsum[:, None]
+        self.kf_w[gidx] = wsum
+
+    def _project(self, T_cur_kf: F64, X: F64) -> tuple[F32, npt.NDArray[np.bool_]]:
+        Xc = X @ T_cur_kf[:3, :3].T + T_cur_kf[:3, 3]
+        front = Xc[:, 2] > 0.05
+        z = np.where(front, Xc[:, 2], 1.0)
+        u = self.intr.fx * Xc[:, 0] / z + self.intr.cx
+        v = self.intr.fy * Xc[:, 1] / z + self.intr.cy
+        if self.dist is not None:
+            pts, _ = cv2.projectPoints(Xc[:, None, :], np.zeros(3), np.zeros(3), self.K, self.dist)
+            u, v = pts[:, 0, 0], pts[:, 0, 1]
+        inside = front & (u > -20) & (u < self.intr.width + 20) & (v > -20) & (v < self.intr.height + 20)
+        return np.c_[u, v].astype(np.float32), inside
+
+    def _process_keyframe(
+        self,
+        stamp_ns: int,
+        gray: npt.NDArray[np.uint8],
+        right_gray: npt.NDArray[np.uint8] | None,
+        depth_m: F32 | None,
+    ) -> FramePose:
+        o = self.opts
+        if self.method is Method.STEREO and right_gray is None:
+            raise EstimationError("method 'stereo' needs the right image in every frame")
+        timer = _Timer()
+        pyr = gray
+        timer.lap("track")
+        if self.prev_pyr is None:
+            self._make_keyframe(
+                gray,
+                pyr,
+                right_gray,
+                depth_m,
+                np.empty((0, 2), np.float32),
+                np.empty(0, np.int64),
+                None,
+                None,
+            )
+            self._ba_add_keyframe()
+            timer.lap("keyframe")
+            self.prev_pyr, self.prev_stamp_ns = pyr, stamp_ns
+            return self._emit(stamp_ns, len(self.kf_X), Quality.INIT, True, timer)
+
+        dt_s = max((stamp_ns - self.prev_stamp_ns) * 1e-9, 1e-4)
+        T_pred_cur_prev = self._predict(dt_s)
+        T_pred_cur_kf = T_pred_cur_prev @ self.T_prev_kf
+        guess_px, vis = self._project(T_pred_cur_kf, self.kf_X)
+        guess = np.where(vis[:, None], guess_px, self.trk_px)
+        px, ok = track_klt(
+            self.prev_pyr, pyr, self.trk_px, o.fb_max_px, o.klt_win_px, o.klt_levels, guess=guess
+        )
+        h, w = gray.shape
+        ok &= (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
+        idx = np.flatnonzero(ok)
+        timer.lap("track")
+
+        right_pyr = None
+        if self.method is Method.STEREO and o.inliers == "rigidity":
+            assert right_gray is not None
+            right_pyr = right_gray
+        motion: Motion | None = None
+        self._meas = None
+        if len(idx) >= o.min_inliers:
+            m = self._estimate(
+                self.kf_X[idx], self.kf_px[idx], px[idx], depth_m, T_pred_cur_kf, right_pyr, pyr, right_gray
+            )
+            if m.ok:
+                motion = m
+        quality = Quality.GOOD
+        fallback = False
+        if motion is None and o.orb_fallback:
+            motion = self._orb_fallback(gray, T_pred_cur_kf)
+            fallback = motion is not None
+            quality = Quality.FALLBACK
+        T_cur_kf = T_pred_cur_kf
+        n_inl = 0
+        if motion is not None:
+            T_cand = motion.T_cur_ref
+            T_cur_prev = T_cand @ invert(self.T_prev_kf)
+            if self._plausible(T_cur_prev, dt_s):
+                T_cur_kf = T_cand
+                n_inl = motion.n_inliers
+                if quality is Quality.GOOD and n_inl < 2 * o.min_inliers:
+                    quality = Quality.WEAK
+            else:
+                logger.debug(
+                    "frame %d: implausible step rejected (%.3f m)",
+                    self.index,
+                    np.linalg.norm(T_cur_prev[:3, 3]),
+                )
+                motion = None
+        if motion is None:
+            quality = Quality.PREDICTED
+        timer.lap("motion")
+
+        # Accept the step.
+        T_cur_prev = T_cur_kf @ invert(self.T_prev_kf)
+        if quality is not Quality.PREDICTED:
+            self.T_step, self.step_dt_s = T_cur_prev, dt_s
+        self.T_world_cam = self.T_world_kf @ invert(T_cur_kf)
+        self.T_prev_kf = T_cur_kf
+        self.kf_since += 1
+        fused = False
+        if motion is not None and not fallback and self._meas is not None and o.fuse_depth:
+            self._fuse(idx[self._meas[0]], self._meas[1], T_cur_kf)
+            fused = True
+
+        # Keep the inlier tracks (all valid tracks when the estimate was not from them).
+        if motion is not None and not fallback:
+            keep = np.zeros(len(self.trk_px), dtype=bool)
+            keep[idx[motion.inliers]] = True
+        else:
+            keep = ok
+        self.kf_X, self.kf_px, self.kf_ids = self.kf_X[keep], self.kf_px[keep], self.kf_ids[keep]
+        self.kf_w = self.kf_w[keep]
+        self.trk_px = np.ascontiguousarray(px[keep])
+        parallax = np.linalg.norm(self.trk_px - self.kf_px, axis=1) if len(self.trk_px) else np.zeros(1)
+        depth = float(np.median(self.kf_X[:, 2])) if len(self.kf_X) else float("inf")
+        decision = o.keyframes.decide(parallax, len(self.trk_px), self.kf_n0, T_cur_kf, self.kf_since, depth)
+        is_kf = decision.new_keyframe or fallback
+        if is_kf:
+            X_cur = self.kf_X @ T_cur_kf[:3, :3].T + T_cur_kf[:3, 3]
+            self._make_keyframe(
+                gray,
+                pyr,
+                right_gray,
+                depth_m,
+                self.trk_px,
+                self.kf_ids,
+                X_cur,
+                self.kf_w,
+                remeasure=not fused,
+            )
+            logger.debug(
+                "frame %d: keyframe (%s), %d points",
+                self.index,
+                decision.reason or "fallback",
+                len(self.kf_X),
+            )
+            timer.lap("keyframe")
+            if o.ba_window > 1:
+                self._ba_add_keyframe()
+                self._ba_run()
+                timer.lap("ba")
+        self.prev_pyr, self.prev_stamp_ns = pyr, stamp_ns
+        return self._emit(stamp_ns, n_inl, quality, is_kf, timer)
+
+    # ------------------------------------------------------------------ local bundle adjustment
+    def _ba_add_keyframe(self) -> None:
+        if self.opts.ba_window <= 1:
+            return
+        und = self._undistort(self.kf_px)
+        disp = self.intr.fx * self.ba_baseline_m / self.kf_X[:, 2]
+        self.ba_window.append((self.T_world_kf.copy(), self.kf_ids.copy(), und, disp))
+        Xw = self.kf_X @ self.T_world_kf[:3, :3].T + self.T_world_kf[:3, 3]
+        for i, lid in enumerate(self.kf_ids.tolist()):
+            if lid not in self.landmarks:
+                self.landmarks[lid] = Xw[i]
+        if len(self.ba_window) > self.opts.ba_window:
+            self.ba_window.pop(0)
+            alive = set(np.concatenate([w[1] for w in self.ba_window]).tolist())
+            self.landmarks = {k: v for k, v in self.landmarks.items() if k in alive}
+
+    def _ba_run(self) -> None:
+        from estimation.bundle import bundle_adjust
+
+        if len(self.ba_window) < 2:
+            return
+        poses = np.stack([w[0] for w in self.ba_window])
+        lids = np.array(sorted(self.landmarks), dtype=np.int64)
+        if len(lids) < 10:
+            return
+        pos = {lid: i for i, lid in enumerate(lids.tolist())}
+        cams, pts, uv, dd = [], [], [], []
+        for c, (_, ids, und, disp) in enumerate(self.ba_window):
+            for j, lid in enumerate(ids.tolist()):
+                if lid in pos:
+                    cams.append(c)
+                    pts.append(pos[lid])
+                    uv.append(und[j])
+                    dd.append(disp[j])
+        cams_a, pts_a, uv_a, d_a = np.array(cams), np.array(pts), np.array(uv), np.array(dd)
+        # Only points seen from two or more keyframes constrain the poses.
+        seen = np.bincount(pts_a, minlength=len(lids))
+        multi = seen >= 2
+        if np.count_nonzero(multi) < 10:
+            return
+        remap = np.cumsum(multi) - 1
+        keep_obs = multi[pts_a]
+        lids = lids[multi]
+        P = np.stack([self.landmarks[int(k)] for k in lids])
+        res = bundle_adjust(
+            poses,
+            P,
+            cams_a[keep_obs],
+            remap[pts_a[keep_obs]],
+            uv_a[keep_obs],
+            self.K,
+            n_fixed=1,
+            disparity_px=d_a[keep_obs],
+            baseline_m=self.ba_baseline_m,
+        )
+        if res is None:
+            return
+        new_poses, new_P = res
+        for i, lid in enumerate(lids.tolist()):
+            self.landmarks[lid] = new_P[i]
+        self.ba_window = [(new_poses[c], *w[1:]) for c, w in enumerate(self.ba_window)]
+        # The newest keyframe is the current frame: move it and its points (in its own frame).
+        T_new = new_poses[-1]
+        self.T_world_kf = T_new.copy()
+        self.T_world_cam = T_new.copy()
+        T_kf_world = invert(T_new)
+        Xw = np.stack(
+            [
+                self.landmarks.get(int(k), None) if int(k) in self.landmarks else np.full(3, np.nan)
+                for k in self.kf_ids
+            ]
+        )
+        Xk = Xw @ T_kf_world[:3, :3].T + T_kf_world[:3, 3]
+        good = np.isfinite(Xk).all(axis=1) & (Xk[:, 2] > self.opts.min_depth_m)
+        self.kf_X = np.where(good[:, None], Xk, self.kf_X)
+
+    # ------------------------------------------------------------------ optical-flow velocity
+    def _process_flow(
+        self,
+        stamp_ns: int,
+        gray: npt.NDArray[np.uint8],
+        right_gray: npt.NDArray[np.uint8] | None,
+        depth_m: F32 | None,
+    ) -> FramePose:
+        o = self.opts
+        timer = _Timer()
+        pyr = gray
+        per_point_stereo = depth_m is None and o.flow_depth == "stereo"
+        if (
+            depth_m is None
+            and right_gray is not None
+            and per_point_stereo is False
+            and (self.index % max(1, o.altitude_every) == 0 or not math.isfinite(self.altitude_m))
+        ):
+            if right_gray is None or self.rig is None:
+                raise EstimationError("method 'flow' needs a depth image or a stereo pair (for the altitude)")
+            z, _ = stereo_altitude_m(gray, right_gray, self.rig.fx, self.rig.baseline_m, self.orb)
+            if math.isfinite(z) and o.min_depth_m <= z <= o.max_depth_m:
+                self.altitude_m = z
+        timer.lap("track")
+        if self.prev_pyr is None:
+            self.flow_pts = shi_tomasi(gray, o.max_features, 0.01, max(5.0, self.intr.width / 60))
+            if per_point_stereo:
+                self._flow_stereo_depth(gray, right_gray)
+            timer.lap("keyframe")
+            self.prev_pyr, self.prev_stamp_ns = pyr, stamp_ns
+            self.prev_depth = depth_m
+            return self._emit(stamp_ns, 0, Quality.INIT, True, timer)
+        dt_s = max((stamp_ns - self.prev_stamp_ns) * 1e-9, 1e-4)
+        px, ok = track_klt(self.prev_pyr, pyr, self.flow_pts, o.fb_max_px, o.klt_win_px, o.klt_levels)
+        idx = np.flatnonzero(ok)
+        timer.lap("track")
+        quality = Quality.PREDICTED
+        n_inl = 0
+        T_prev_cur = invert(self._predict(dt_s))
+        if len(idx) >= o.min_inliers:
+            p0, p1 = self._undistort(self.flow_pts[idx]), self._undistort(px[idx])
+            Kinv = np.linalg.inv(self.K)
+            x0 = p0 @ Kinv[:2, :2].T + Kinv[:2, 2]
+            x1 = p1 @ Kinv[:2, :2].T + Kinv[:2, 2]
+            if depth_m is not None and self.prev_depth is not None:
+                Z = self._depth_at(self.prev_depth, self.flow_pts[idx])
+                good = np.isfinite(Z)
+                x0, x1, Z = x0[good], x1[good], Z[good]
+            elif per_point_stereo:
+                Z = self.flow_Z[idx]
+                good = np.isfinite(Z)
+                x0, x1, Z = x0[good], x1[good], Z[good]
+            else:
+                Z = self.altitude_m
+            if len(x0) >= o.min_inliers and np.all(np.isfinite(Z)):
+                thr = o.flow_threshold_px / self.intr.fx / dt_s
+                twist, inl = velocity_ransac(x0, x1, Z, dt_s, thr, rng=self.rng)
+                if np.count_nonzero(inl) >= o.min_inliers:
+                    T_cand = integrate_velocity(twist, dt_s)
+                    if self._plausible(T_cand, dt_s):
+                        T_prev_cur = T_cand
+                        n_inl = int(np.count_nonzero(inl))
+                        quality = Quality.GOOD if n_inl >= 2 * o.min_inliers else Quality.WEAK
+        timer.lap("motion")
+        if quality is not Quality.PREDICTED:
+            self.T_step, self.step_dt_s = invert(T_prev_cur), dt_s
+        self.T_world_cam = self.T_world_cam @ T_prev_cur
+        self.flow_pts = np.ascontiguousarray(px[idx])
+        refill = len(self.flow_pts) < o.max_features // 2
+        if refill:
+            mask = np.full(gray.shape, 255, np.uint8)
+            for x, y in self.flow_pts:
+                cv2.circle(mask, (int(x), int(y)), 8, 0, -1)
+            new = shi_tomasi(
+                gray, o.max_features - len(self.flow_pts), 0.01, max(5.0, self.intr.width / 60), mask
+            )
+            self.flow_pts = np.concatenate([self.flow_pts, new]) if len(new) else self.flow_pts
+            timer.lap("keyframe")
+        if per_point_stereo:
+            self._flow_stereo_depth(gray, right_gray)
+            timer.lap("keyframe")
+        self.prev_pyr, self.prev_stamp_ns = pyr, stamp_ns
+        self.prev_depth = depth_m
+        return self._emit(stamp_ns, n_inl, quality, refill, timer)
+
+    def _flow_stereo_depth(
+        self, gray: npt.NDArray[np.uint8], right_gray: npt.NDArray[np.uint8] | None
+    ) -> None:
+        """Per-point depth of the flow points by sparse stereo (for the next frame's velocity)."""
+        if right_gray is None or self.rig is None:
+            raise EstimationError("flow_depth='stereo' needs the right image in every frame")
+        X, ok = self._points_3d(self.flow_pts, right_gray, gray, None, self._flow_init_disparity())
+        self.flow_Z = np.where(ok, X[:, 2], np.nan)
+
+    def _flow_init_disparity(self) -> float:
+        assert self.rig is not None
+        z = self.flow_Z[np.isfinite(self.flow_Z)] if len(self.flow_Z) else np.empty(0)
+        return float(self.rig.fx * self.rig.baseline_m / np.median(z)) if len(z) else 0.0
+
+
+# ---------------------------------------------------------------------------------------------
+def _resize_intrinsics(intr: CameraIntrinsics, size: tuple[int, int]) -> CameraIntrinsics:
+    from flightkit.datasets.base import CameraIntrinsics
+
+    w, h = size
+    sx, sy = w / intr.width, h / intr.height
+    return CameraIntrinsics(
+        intr.fx * sx, intr.fy * sy, (intr.cx + 0.5) * sx - 0.5, (intr.cy + 0.5) * sy - 0.5, w, h, intr.dist
+    )
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class PreparedFrame:
+    """Images ready for :meth:`VisualOdometry.process` (decoded, resized, depth in metres)."""
+
+    stamp_ns: int
+    gray: npt.NDArray[np.uint8]
+    right_gray: npt.NDArray[np.uint8] | None
+    depth_m: F32 | None
+    T_world_camera: Transform | None
+
+
+class FramePreparer:
+    """Converts dataset frames for a method and an optional processing size (reuses no
+    buffers across frames: the frames own their images)."""
+
+    def __init__(self, sequence: Sequence, method: Method, size: tuple[int, int] | None) -> None:
+        self.method = method
+        intr = sequence.intrinsics
+        self.size = size if size is not None and size != (intr.width, intr.height) else None
+        self.intrinsics = _resize_intrinsics(intr, self.size) if self.size else intr
+        di = sequence.depth_intrinsics
+        self.depth_intrinsics = _resize_intrinsics(di, self.size) if (self.size and di is not None) else di
+        self.want_depth = method.needs_depth or (method is Method.FLOW and di is not None)
+        self.want_right = method is Method.STEREO or (method is Method.FLOW and di is None)
+
+    def __call__(self, frame: Frame) -> PreparedFrame:
+        gray = frame.gray
+        right = frame.right_gray if self.want_right else None
+        depth = frame.depth_m if self.want_depth else None
+        if self.size is not None:
+            gray = cv2.resize(gray, self.size, interpolation=cv2.INTER_AREA)
+            if right is not None:
+                right = cv2.resize(right, self.size, interpolation=cv2.INTER_AREA)
+            if depth is not None:
+                depth = cv2.resize(depth, self.size, interpolation=cv2.INTER_NEAREST)
+        return PreparedFrame(frame.stamp_ns, gray, right, depth, frame.T_world_camera)
+
+
+def run_vo(
+    sequence: Sequence,
+    method: Method | str,
+    *,
+    options: VoOptions | None = None,
+    size: tuple[int, int] | None = None,
+    T_body_camera: Transform | None = None,
+    init_from_groundtruth: bool = False,
+    start: int = 0,
+    stop: int | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    on_pose: Callable[[FramePose], None] | None = None,
+) -> VoResult:
+    """Run visual odometry over a sequence.
+
+    Args:
+        sequence: any :class:`~flightkit.datasets.base.Sequence` (TUM, 7-Scenes, EuRoC,
+            KITTI, recording, simulator).
+        method: a :class:`Method` or its name (``rgbd-pnp``, ``rgbd-essential``,
+            ``rgbd-kabsch``, ``stereo``, ``flow``).
+        options: pipeline tuning.
+        size: process images resized to (width, height) (intrinsics scaled to match).
+        T_body_camera: camera mounting, for ``T_world_body`` (default identity).
+        init_from_groundtruth: start at the first frame's ground-truth camera pose (so the
+            estimate overlays the ground truth without alignment); else at the identity.
+        start, stop: frame range.
+        progress: called as ``progress(frames_done, frames_total)`` after every frame.
+        on_pose: called with every :class:`FramePose` (hook for live publishing).
+
+    Returns:
+        :class:`VoResult`. Blocks until the sequence is processed.
+
+    Raises:
+        EstimationError: unknown method, or the sequence lacks depth/stereo for it.
+        DatasetError: an image cannot be read.
+    """
+    try:
+        m = Method(method)
+    except ValueError as exc:
+        names = ", ".join(x.value for x in Method)
+        raise EstimationError(f"unknown VO method {method!r}; use one of {names}") from exc
+    if m.needs_depth and sequence.depth_intrinsics is None:
+        raise EstimationError(
+            f"method {m.value!r} needs depth images but {sequence.name} has none; try 'stereo' or 'flow'"
+        )
+    if m is Method.STEREO and not sequence.baseline_m:
+        raise EstimationError(
+            f"method 'stereo' needs a stereo pair but {sequence.name} has none; try an rgbd method"
+        )
+    if m is Method.FLOW and sequence.depth_intrinsics is None and not sequence.baseline_m:
+        raise EstimationError(f"method 'flow' needs depth or stereo but {sequence.name} has neither")
+    prep = FramePreparer(sequence, m, size)
+    total = len(range(*slice(start, stop).indices(len(sequence))))
+    t0 = time.perf_counter()
+    vo: VisualOdometry | None = None
+    poses: list[FramePose] = []
+    for i, frame in enumerate(sequence.frames(start, stop)):
+        pf = prep(frame)
+        if vo is None:
+            T0 = pf.T_world_camera if (init_from_groundtruth and pf.T_world_camera is not None) else None
+            vo = VisualOdometry(
+                m,
+                prep.intrinsics,
+                sequence.baseline_m,
+                prep.depth_intrinsics,
+                T_body_camera,
+                T0,
+                options,
+                on_pose,
+            )
+        poses.append(vo.process(pf.stamp_ns, pf.gray, pf.right_gray, pf.depth_m))
+        if progress is not None:
+            progress(i + 1, total)
+    wall = time.perf_counter() - t0
+    return collect_result(
+        poses, m.value, sequence.name, wall, (prep.intrinsics.width, prep.intrinsics.height)
+    )
+
+
+def collect_result(
+    poses: list[FramePose], method: str, name: str, wall_s: float, size: tuple[int, int]
+) -> VoResult:
+    """Stack per-frame poses into a :class:`VoResult`."""
+    if not poses:
+        raise EstimationError(f"no frames were processed for {name}; check the frame range")
+    return VoResult(
+        method=method,
+        sequence=name,
+        stamps_ns=np.array([p.stamp_ns for p in poses], dtype=np.int64),
+        T_world_camera=np.stack([p.T_world_camera for p in poses]),
+        T_world_body=np.stack([p.T_world_body for p in poses]),
+        n_inliers=np.array([p.n_inliers for p in poses], dtype=np.int64),
+        quality=np.array([int(p.quality) for p in poses], dtype=np.int8),
+        keyframe=np.array([p.keyframe for p in poses], dtype=bool),
+        stage_ms={s: np.array([p.stage_ms[s] for p in poses]) for s in STAGES},
+        wall_s=wall_s,
+        image_size=size,
+        cpu_ms=np.array([p.cpu_ms for p in poses]),
+    )

@@ -1,0 +1,187 @@
+"""The VO methods end to end on real recorded sequences (read in place from ../shared/data).
+
+Error bounds were set from measurement (bench/vo.py and runs of these tests, 2026-11):
+each bound is about 1.5-2x the measured error, so a regression fails while run-to-run
+noise does not. Measured values are noted next to each bound.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from estimation.baseline import run_baseline
+from estimation.evaluation import ape, lab_errors
+from estimation.motion import invert, rotation_angle_rad
+from estimation.pipeline import FramePose, Method, Quality, VisualOdometry, VoOptions, run_vo
+from flightkit.datasets.registry import open_sequence
+from flightkit.datasets.trajectory import read_tum
+from flightkit.errors import EstimationError
+from flightkit.frames import Transform
+
+SHARED_DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
+
+pytestmark = pytest.mark.skipif(not SHARED_DATA.is_dir(), reason=f"real test data not found at {SHARED_DATA}")
+
+
+def test_kitti06_stereo_320x240(tmp_path: Path) -> None:
+    seq = open_sequence(SHARED_DATA / "kitti06_stereo")
+    res = run_vo(seq, "stereo", size=(320, 240), init_from_groundtruth=True)
+    assert len(res) == 51
+    assert np.all(res.quality[1:] != Quality.PREDICTED)
+    gt = seq.groundtruth()
+    a = ape(res.trajectory(), gt, "se3")
+    assert a.translation.rmse < 0.15  # measured 0.057-0.065 m over 59.9 m driven
+    lab = lab_errors(res.trajectory(), gt)
+    assert lab.relative_translation.mean < 0.035  # measured 0.016-0.018 m per 1.2 m step
+    assert math.degrees(lab.relative_rotation.mean) < 0.15  # measured 0.061-0.067 deg
+    # Path length within 2 % of the ground truth (scale comes from the stereo baseline).
+    est_len = res.trajectory().path_length_m()
+    assert est_len == pytest.approx(gt.path_length_m(), rel=0.02)
+    # The TUM file round-trips.
+    out = res.write_tum(tmp_path / "kitti_stereo.txt")
+    back = read_tum(out)
+    np.testing.assert_array_equal(back.stamps_ns, res.stamps_ns)
+    np.testing.assert_allclose(back.positions, res.T_world_camera[:, :3, 3], atol=1e-6)
+
+
+def test_kitti06_stereo_full_resolution_with_rigidity_inliers() -> None:
+    seq = open_sequence(SHARED_DATA / "kitti06_stereo")
+    res = run_vo(seq, "stereo", options=VoOptions(inliers="rigidity"), init_from_groundtruth=True)
+    a = ape(res.trajectory(), seq.groundtruth(), "se3")
+    assert a.translation.rmse < 0.25  # measured 0.13 m
+
+
+@pytest.mark.parametrize(
+    ("method", "ate_bound_m"),
+    [("rgbd-pnp", 0.02), ("rgbd-essential", 0.035), ("rgbd-kabsch", 0.025), ("flow", 0.025)],
+)
+def test_sevenscenes_rgbd(method: str, ate_bound_m: float) -> None:
+    # measured ATE: pnp 0.007-0.009, essential 0.016-0.021, kabsch 0.013, flow 0.012 m (0.25 m path)
+    seq = open_sequence(SHARED_DATA / "sevenscenes_tsdf50")
+    res = run_vo(seq, method, init_from_groundtruth=True)
+    assert len(res) == 50
+    assert np.count_nonzero(res.quality == Quality.PREDICTED) <= 2
+    a = ape(res.trajectory(), seq.groundtruth(), "se3")
+    assert a.translation.rmse < ate_bound_m
+    assert res.keyframe.sum() < 50 or method == "flow"
+
+
+@pytest.mark.parametrize("case", ["case_1", "case_2"])
+@pytest.mark.parametrize("method", ["rgbd-pnp", "rgbd-essential", "rgbd-kabsch", "flow"])
+def test_tum_pairs_relative_pose(case: str, method: str) -> None:
+    # measured: translation error 4-11 mm on steps of 22 / 52 mm; rotation 0.1-0.5 deg
+    seq = open_sequence(SHARED_DATA / "tum_fr1xyz_pairs" / case)
+    res = run_vo(seq, method)
+    G = seq.groundtruth().as_matrices()
+    rel_gt = invert(G[0]) @ G[1]
+    rel = invert(res.T_world_camera[0]) @ res.T_world_camera[1]
+    err = invert(rel_gt) @ rel
+    assert res.quality[1] in (Quality.GOOD, Quality.WEAK)
+    assert np.linalg.norm(err[:3, 3]) < 0.02
+    assert math.degrees(rotation_angle_rad(err[:3, :3])) < 0.8
+    # Much better than not moving at all.
+    assert np.linalg.norm(err[:3, 3]) < 0.5 * np.linalg.norm(rel_gt[:3, 3])
+
+
+@pytest.mark.parametrize("method", ["stereo", "flow"])
+def test_euroc_static_drift_at_rest(method: str) -> None:
+    seq = open_sequence(SHARED_DATA / "euroc_v101_static")
+    res = run_vo(seq, method, init_from_groundtruth=True)
+    T = res.T_world_camera
+    drift = np.linalg.norm(T[:, :3, 3] - T[0, :3, 3], axis=1)
+    assert drift.max() < 0.003  # measured 0.3-0.6 mm over 1 s (ground truth moves 1.7 mm)
+    turn = max(math.degrees(rotation_angle_rad((invert(T[0]) @ t)[:3, :3])) for t in T)
+    assert turn < 0.3  # measured 0.13 deg
+    if method == "stereo":
+        assert res.keyframe.sum() == 1  # at rest, the first keyframe is kept: no drift from re-anchoring
+
+
+def test_body_poses_follow_the_extrinsics_and_hooks_fire() -> None:
+    seq = open_sequence(SHARED_DATA / "sevenscenes_tsdf50")
+    T_body_camera = Transform.from_xyz_euler_deg([0.1, 0.0, -0.05], "xz", [-90.0, -90.0])
+    seen: list[FramePose] = []
+    progress: list[tuple[int, int]] = []
+    res = run_vo(
+        seq,
+        "rgbd-pnp",
+        T_body_camera=T_body_camera,
+        stop=10,
+        on_pose=seen.append,
+        progress=lambda i, n: progress.append((i, n)),
+    )
+    assert len(res) == 10 and len(seen) == 10
+    assert progress[-1] == (10, 10)
+    Tbc = T_body_camera.as_matrix()
+    np.testing.assert_allclose(res.T_world_body @ Tbc, res.T_world_camera, atol=1e-12)
+    body = res.trajectory("body")
+    np.testing.assert_allclose(body.positions, res.T_world_body[:, :3, 3])
+    assert set(res.stage_ms) >= {"track", "motion", "keyframe", "total"}
+    assert res.fps > 0
+
+
+def test_method_without_its_sensor_is_a_clear_error() -> None:
+    seq = open_sequence(SHARED_DATA / "sevenscenes_tsdf50")
+    with pytest.raises(EstimationError, match="stereo pair"):
+        run_vo(seq, "stereo")
+    with pytest.raises(EstimationError, match="unknown VO method"):
+        run_vo(seq, "lidar")
+    kitti = open_sequence(SHARED_DATA / "kitti06_stereo")
+    with pytest.raises(EstimationError, match="depth"):
+        run_vo(kitti, Method.RGBD_PNP)
+
+
+def test_constant_velocity_fallback_when_the_image_goes_blank() -> None:
+    """A black frame gives no features: the pose is predicted, not dropped, and flagged."""
+    seq = open_sequence(SHARED_DATA / "kitti06_stereo")
+    frames = list(seq.frames(0, 6))
+    vo = VisualOdometry("stereo", seq.intrinsics, seq.baseline_m)
+    poses = [vo.process(f.stamp_ns, f.gray, f.right_gray) for f in frames[:5]]
+    blank = np.zeros_like(frames[5].gray)
+    p = vo.process(frames[5].stamp_ns, blank, blank)
+    assert p.quality is Quality.PREDICTED
+    step_prev = np.linalg.norm(poses[4].T_world_camera[:3, 3] - poses[3].T_world_camera[:3, 3])
+    step_pred = np.linalg.norm(p.T_world_camera[:3, 3] - poses[4].T_world_camera[:3, 3])
+    assert step_pred == pytest.approx(step_prev, rel=0.05)  # the car keeps going (~1.2 m/frame)
+
+
+def test_beats_the_baseline_on_kitti() -> None:
+    kitti = open_sequence(SHARED_DATA / "kitti06_stereo")
+    ours = run_vo(kitti, "stereo", size=(320, 240), stop=30)
+    base = run_baseline(kitti, "pnp", size=(320, 240), stop=30)
+    assert (
+        ape(ours.trajectory(), kitti.groundtruth()).translation.rmse
+        < ape(base.trajectory(), kitti.groundtruth()).translation.rmse
+    )
+    assert ours.fps > 5 * base.fps  # measured 15-30x on one core; loose for a loaded CI machine
+
+
+def test_orb_fallback_recovers_a_jump_that_tracking_cannot_follow() -> None:
+    """Frames 0 -> 5 of KITTI (6 m forward, no motion prior yet): LK tracking loses the
+    points, ORB matching against the keyframe recovers the pose."""
+    seq = open_sequence(SHARED_DATA / "kitti06_stereo")
+    frames = list(seq.frames(0, 6))
+    vo = VisualOdometry("stereo", seq.intrinsics, seq.baseline_m)
+    vo.process(frames[0].stamp_ns, frames[0].gray, frames[0].right_gray)
+    p = vo.process(frames[5].stamp_ns, frames[5].gray, frames[5].right_gray)
+    assert p.quality is Quality.FALLBACK and p.keyframe
+    assert frames[0].T_world_camera is not None and frames[5].T_world_camera is not None
+    gt = (frames[0].T_world_camera.inverse() @ frames[5].T_world_camera).translation
+    assert np.linalg.norm(p.T_world_camera[:3, 3] - gt) < 0.7  # measured 0.35 m on a 5.96 m jump
+
+
+def test_flow_with_per_point_stereo_depth_handles_a_forward_camera() -> None:
+    """The altitude model (one depth) cannot explain a road scene; per-point stereo depth can."""
+    seq = open_sequence(SHARED_DATA / "kitti06_stereo")
+    gt = seq.groundtruth()
+    per_point = run_vo(
+        seq, "flow", size=(320, 240), options=VoOptions(flow_depth="stereo"), init_from_groundtruth=True
+    )
+    altitude = run_vo(seq, "flow", size=(320, 240), init_from_groundtruth=True)
+    ate_pp = ape(per_point.trajectory(), gt).translation.rmse
+    ate_alt = ape(altitude.trajectory(), gt).translation.rmse
+    assert ate_pp < 2.5  # measured 1.18 m over 59.9 m (first-order velocity model at 10 Hz)
+    assert ate_alt > 3 * ate_pp  # measured 11.7 m

@@ -1,0 +1,248 @@
+"""Known-answer tests for the motion estimators: exact motion from noise-free points, and
+outliers (50 %) rejected, for Kabsch/Umeyama RANSAC, PnP (3 solvers) and the essential
+matrix with metric scale."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from estimation.motion import (
+    PNP_METHODS,
+    essential_metric,
+    invert,
+    make_T,
+    pnp,
+    ransac_rigid,
+    rigidity_inliers,
+    rotation_angle_rad,
+    umeyama,
+)
+from flightkit.errors import EstimationError
+
+K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
+
+
+def scene(n: int, seed: int = 1) -> np.ndarray:
+    """Points in front of the reference camera, 1.5-6 m deep, inside the image."""
+    rng = np.random.default_rng(seed)
+    z = rng.uniform(1.5, 6.0, n)
+    u = rng.uniform(20, 620, n)
+    v = rng.uniform(20, 460, n)
+    return np.c_[(u - 320) / 500 * z, (v - 240) / 500 * z, z]
+
+
+def true_motion() -> np.ndarray:
+    R = Rotation.from_euler("xyz", [2.0, -4.0, 3.0], degrees=True).as_matrix()
+    return make_T(R, [0.12, -0.05, 0.30])
+
+
+def project(T: np.ndarray, X: np.ndarray) -> np.ndarray:
+    Xc = X @ T[:3, :3].T + T[:3, 3]
+    uv = Xc @ K.T
+    return uv[:, :2] / uv[:, 2:3]
+
+
+def assert_motion(T_est: np.ndarray, T_true: np.ndarray, tol_m: float, tol_rad: float) -> None:
+    dT = invert(T_true) @ T_est
+    assert np.linalg.norm(dT[:3, 3]) < tol_m, (T_est, T_true)
+    assert rotation_angle_rad(dT[:3, :3]) < tol_rad
+
+
+def test_umeyama_exact_rigid_and_similarity() -> None:
+    X = scene(40)
+    T = true_motion()
+    Y = X @ T[:3, :3].T + T[:3, 3]
+    R, t, s = umeyama(X, Y)
+    assert s == 1.0
+    assert_motion(make_T(R, t), T, 1e-12, 1e-12)
+    R, t, s = umeyama(X, 2.5 * Y, with_scale=True)
+    assert s == pytest.approx(2.5, abs=1e-12)
+    np.testing.assert_allclose(R, T[:3, :3], atol=1e-12)
+    np.testing.assert_allclose(t, 2.5 * T[:3, 3], atol=1e-12)
+
+
+def test_umeyama_never_returns_a_reflection() -> None:
+    X = scene(10)
+    Y = X * np.array([1.0, 1.0, -1.0])  # a mirror image: best proper rotation, det +1
+    R, _, _ = umeyama(X, Y)
+    assert np.linalg.det(R) == pytest.approx(1.0)
+
+
+def test_umeyama_rejects_too_few_points() -> None:
+    with pytest.raises(EstimationError, match="N >= 3"):
+        umeyama(np.zeros((2, 3)), np.zeros((2, 3)))
+
+
+def test_ransac_rigid_exact_without_noise() -> None:
+    X = scene(100)
+    T = true_motion()
+    Y = X @ T[:3, :3].T + T[:3, 3]
+    m = ransac_rigid(X, Y, threshold_m=0.01)
+    assert m.ok and m.n_inliers == 100
+    assert_motion(m.T_cur_ref, T, 1e-9, 1e-9)
+
+
+def test_ransac_rigid_rejects_half_outliers() -> None:
+    rng = np.random.default_rng(7)
+    X = scene(200)
+    T = true_motion()
+    Y = X @ T[:3, :3].T + T[:3, 3] + rng.normal(0, 0.003, X.shape)
+    bad = rng.permutation(200)[:100]
+    Y[bad] += rng.uniform(-2.0, 2.0, (100, 3))  # gross outliers
+    m = ransac_rigid(X, Y, threshold_m=0.02)
+    assert m.ok
+    assert not m.inliers[bad].any(), "an outlier was accepted"
+    good = np.setdiff1d(np.arange(200), bad)
+    assert m.inliers[good].mean() > 0.95
+    assert_motion(m.T_cur_ref, T, 0.003, np.radians(0.2))
+    # A plain least-squares fit on the same data is far off: the RANSAC really did the work.
+    R, t, _ = umeyama(X, Y)
+    assert np.linalg.norm(t - T[:3, 3]) > 0.05
+
+
+def test_ransac_rigid_fails_cleanly_on_pure_noise() -> None:
+    rng = np.random.default_rng(3)
+    m = ransac_rigid(
+        rng.uniform(-1, 1, (30, 3)), rng.uniform(-1, 1, (30, 3)), threshold_m=0.001, min_inliers=6
+    )
+    assert not m.ok
+    np.testing.assert_array_equal(m.T_cur_ref, np.eye(4))
+
+
+def test_rigidity_inliers_finds_the_rigid_set() -> None:
+    rng = np.random.default_rng(5)
+    X = scene(120)
+    T = true_motion()
+    Y = X @ T[:3, :3].T + T[:3, 3]
+    bad = rng.permutation(120)[:60]
+    Y[bad] += rng.uniform(0.5, 1.5, (60, 3)) * rng.choice([-1, 1], (60, 3))
+    mask = rigidity_inliers(X, Y, tol_m=0.01, rel_tol=0.0)
+    assert not mask[bad].any()
+    assert mask.sum() >= 58  # nearly every rigid point is in the clique
+
+
+@pytest.mark.parametrize("method", sorted(PNP_METHODS))
+def test_pnp_exact_without_noise(method: str) -> None:
+    X = scene(80)
+    T = true_motion()
+    m = pnp(X, project(T, X), K, method=method, ransac=False)
+    assert m.ok and m.n_inliers == 80
+    assert_motion(m.T_cur_ref, T, 1e-6, 1e-7)
+
+
+@pytest.mark.parametrize("method", sorted(PNP_METHODS))
+def test_pnp_ransac_rejects_half_outliers(method: str) -> None:
+    rng = np.random.default_rng(11)
+    X = scene(200)
+    T = true_motion()
+    px = project(T, X) + rng.normal(0, 0.3, (200, 2))
+    bad = rng.permutation(200)[:100]
+    px[bad] = rng.uniform([0, 0], [640, 480], (100, 2))
+    m = pnp(X, px, K, method=method, reproj_px=2.0, max_iters=300)
+    assert m.ok
+    # A random pixel can land near the true projection by chance; allow a couple.
+    assert m.inliers[bad].sum() <= 2
+    assert_motion(m.T_cur_ref, T, 0.01, np.radians(0.2))
+
+
+def test_pnp_unknown_method() -> None:
+    with pytest.raises(EstimationError, match="unknown PnP method"):
+        pnp(scene(10), np.zeros((10, 2)), K, method="p4p")
+
+
+def test_essential_metric_scale_from_depth_exact() -> None:
+    X = scene(150)
+    T = true_motion()
+    m = essential_metric(project(np.eye(4), X), project(T, X), K, X, threshold_px=0.5)
+    assert m.ok
+    assert m.n_inliers >= 145
+    assert_motion(m.T_cur_ref, T, 1e-4, 1e-5)
+
+
+def test_essential_metric_rejects_half_outliers_and_bad_depths() -> None:
+    rng = np.random.default_rng(13)
+    X = scene(300)
+    T = true_motion()
+    px0 = project(np.eye(4), X) + rng.normal(0, 0.2, (300, 2))
+    px1 = project(T, X) + rng.normal(0, 0.2, (300, 2))
+    bad = rng.permutation(300)[:150]
+    px1[bad] = rng.uniform([0, 0], [640, 480], (150, 2))
+    depth_X = X.copy()
+    depth_X[rng.permutation(300)[:20], 2] = np.nan  # missing depth
+    m = essential_metric(px0, px1, K, depth_X, threshold_px=1.0)
+    assert m.ok
+    assert m.inliers[bad].mean() < 0.05
+    assert_motion(m.T_cur_ref, T, 0.01, np.radians(0.3))
+
+
+def test_refine_pose_converges_to_the_exact_pose_with_and_without_disparity() -> None:
+    from estimation.motion import refine_pose
+
+    X = scene(60)
+    T = true_motion()
+    px = project(T, X)
+    start = make_T(
+        Rotation.from_euler("z", 1.5, degrees=True).as_matrix() @ T[:3, :3], T[:3, 3] + [0.03, -0.02, 0.05]
+    )
+    assert_motion(refine_pose(start, X, px, K), T, 1e-7, 1e-8)
+    Xc = X @ T[:3, :3].T + T[:3, 3]
+    disp = 500.0 * 0.1 / Xc[:, 2]
+    disp[::3] = np.nan  # unknown for some points
+    assert_motion(refine_pose(start, X, px, K, disp, 500.0 * 0.1), T, 1e-7, 1e-8)
+
+
+def test_refine_pose_disparity_fixes_depth_along_the_axis() -> None:
+    """A narrow field of view constrains motion along the optical axis poorly from pixels
+    alone; the current disparity measures it directly."""
+    from estimation.motion import refine_pose
+
+    rng = np.random.default_rng(21)
+    z = rng.uniform(3.0, 8.0, 120)
+    u, v = rng.uniform(280, 360, 120), rng.uniform(200, 280, 120)  # an 80 px window
+    X = np.c_[(u - 320) / 500 * z, (v - 240) / 500 * z, z]
+    T = make_T(np.eye(3), [0.0, 0.0, 0.4])
+    Xc = X @ T[:3, :3].T + T[:3, 3]
+    errs_px, errs_d = [], []
+    for _ in range(20):
+        px = project(T, X) + rng.normal(0, 0.5, (120, 2))
+        disp = 500.0 * 0.5 / Xc[:, 2] + rng.normal(0, 0.1, 120)  # a 0.5 m baseline
+        errs_px.append(abs(refine_pose(T, X, px, K)[2, 3] - T[2, 3]))
+        errs_d.append(abs(refine_pose(T, X, px, K, disp, 250.0)[2, 3] - T[2, 3]))
+    assert np.mean(errs_d) < 0.5 * np.mean(errs_px)
+
+
+def test_keyframe_policy_reasons() -> None:
+    from estimation.keyframes import KeyframePolicy
+
+    pol = KeyframePolicy(
+        max_parallax_px=20,
+        min_tracked_fraction=0.5,
+        min_tracked=30,
+        max_baseline_ratio=0.1,
+        max_rotation_rad=0.2,
+        max_interval=10,
+    )
+    still = np.eye(4)
+    assert not pol.decide(np.full(100, 2.0), 100, 120, still, 3).new_keyframe
+    assert "parallax" in pol.decide(np.full(100, 25.0), 100, 120, still, 3).reason
+    assert "tracked" in pol.decide(np.full(20, 2.0), 20, 120, still, 3).reason
+    assert "tracked" in pol.decide(np.full(50, 2.0), 50, 120, still, 3).reason
+    moved = make_T(np.eye(3), [0.0, 0.0, 0.5])
+    assert "moved" in pol.decide(np.full(100, 2.0), 100, 120, moved, 3, scene_depth_m=4.0).reason
+    assert not pol.decide(np.full(100, 2.0), 100, 120, moved, 3, scene_depth_m=10.0).new_keyframe
+    turned = make_T(Rotation.from_euler("y", 15, degrees=True).as_matrix(), np.zeros(3))
+    assert "turned" in pol.decide(np.full(100, 2.0), 100, 120, turned, 3).reason
+    assert "frames" in pol.decide(np.full(100, 2.0), 100, 120, still, 10).reason
+
+
+def test_vo_options_reject_bad_values() -> None:
+    from estimation.pipeline import VoOptions
+
+    with pytest.raises(EstimationError, match="rigidity"):
+        VoOptions(inliers="lmeds")
+    with pytest.raises(EstimationError, match="sqpnp"):
+        VoOptions(pnp_method="p3p")
+    with pytest.raises(EstimationError, match="depth range"):
+        VoOptions(min_depth_m=5.0, max_depth_m=1.0)
