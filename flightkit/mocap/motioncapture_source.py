@@ -1,0 +1,203 @@
+"""Mocap poses from the ``motioncapture`` library (Vicon, OptiTrack, Qualisys, VRPN, mock, ...).
+
+libmotioncapture's calls block without a timeout (``connect`` to an unreachable server,
+``waitForNextFrame`` when the stream stops), so they run on one daemon thread that the
+source can abandon: entering waits for the first frame with a timeout, leaving asks the
+thread to stop and does not wait for a frame that may never come.
+
+Per body: ``seq`` counts the frames it appeared in, ``stamp_ns``/``received_s`` come from
+the injected clock when the frame arrived (the Python binding exposes no system
+timestamps), and a body that disappears from a frame, or comes with NaN, is stored once as
+``valid=False`` with its last known pose.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import threading
+from collections.abc import AsyncIterator, Mapping, Sequence
+from types import TracebackType
+from typing import Any, Self
+
+import numpy as np
+
+from flightkit.clock import Clock
+from flightkit.errors import MocapError
+from flightkit.frames import Transform
+from flightkit.mocap.base import MocapPose
+from flightkit.mocap.store import PoseStore
+
+__all__ = ["MotionCaptureSource", "mock_rigid_bodies"]
+
+logger = logging.getLogger(__name__)
+
+
+def mock_rigid_bodies(bodies: Mapping[str, Transform]) -> str:
+    """The ``rigid_bodies`` option of the ``mock`` system for fixed bodies:
+    ``"name(x,y,z,qw,qx,qy,qz);..."`` (poses in the mocap frame)."""
+    parts = []
+    for name, T in bodies.items():
+        x, y, z = (float(v) for v in T.translation)
+        qw, qx, qy, qz = (float(v) for v in T.quat_wxyz)
+        parts.append(f"{name}({x!r},{y!r},{z!r},{qw!r},{qx!r},{qy!r},{qz!r})")
+    return ";".join(parts)
+
+
+class MotionCaptureSource:
+    """A :class:`~flightkit.mocap.base.MocapSource` backed by ``motioncapture.connect``.
+
+    Args:
+        system_type: ``vicon``, ``optitrack``, ``optitrack_closed_source``, ``qualisys``,
+            ``vrpn``, ``nokov``, ``fzmotion``, ``motionanalysis`` or ``mock``.
+        clock: stamps frames and runs timeouts.
+        hostname: the mocap server (ignored by ``mock``).
+        options: extra library options; values are converted to strings.
+        T_world_mocap: the mocap frame in the world.
+        connect_timeout_s: how long entering waits for the first frame (clock time).
+        bodies: only report these bodies (None: all).
+    """
+
+    def __init__(
+        self,
+        system_type: str,
+        clock: Clock,
+        *,
+        hostname: str = "",
+        options: Mapping[str, Any] | None = None,
+        T_world_mocap: Transform | None = None,
+        connect_timeout_s: float = 5.0,
+        bodies: Sequence[str] | None = None,
+    ) -> None:
+        self.system_type = system_type
+        self.clock = clock
+        self.hostname = hostname
+        self.options = {str(k): str(v) for k, v in (options or {}).items()}
+        if hostname:
+            self.options.setdefault("hostname", hostname)
+        self.T_world_mocap = T_world_mocap or Transform.identity()
+        self.connect_timeout_s = connect_timeout_s
+        self._only = set(bodies) if bodies else None
+        self._store = PoseStore(clock, name=f"motioncapture {system_type}")
+        self._stop = threading.Event()
+        self._first_frame = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._seq: dict[str, int] = {}
+        self._present: set[str] = set()
+        self.frames = 0
+
+    def _describe(self) -> str:
+        return f"{self.system_type} at {self.hostname}" if self.hostname else self.system_type
+
+    # -- the blocking thread
+    def _run(self) -> None:
+        try:
+            import motioncapture
+
+            mc = motioncapture.connect(self.system_type, self.options)
+            while not self._stop.is_set():
+                mc.waitForNextFrame()
+                if self._stop.is_set():
+                    break
+                self._on_frame(mc.rigidBodies)
+        except Exception as exc:  # libmotioncapture raises RuntimeError for connection problems
+            if not self._stop.is_set():
+                logger.error("motioncapture %s stopped: %s", self._describe(), exc)
+                self._store.fail(
+                    MocapError(f"motioncapture {self._describe()} failed: {exc}; check system_type, hostname and options")
+                )
+                self._first_frame.set()
+
+    def _on_frame(self, rigid_bodies: Mapping[str, Any]) -> None:
+        stamp_ns = self.clock.time_ns()
+        received_s = self.clock.monotonic_s()
+        self.frames += 1
+        seen: set[str] = set()
+        for name, rb in rigid_bodies.items():
+            if self._only is not None and name not in self._only:
+                continue
+            pos = np.asarray(rb.position, dtype=np.float64)
+            q = rb.rotation
+            quat_wxyz = np.array([q.w, q.x, q.y, q.z], dtype=np.float64)
+            norm = float(np.linalg.norm(quat_wxyz))
+            seq = self._seq.get(name, 0) + 1
+            self._seq[name] = seq
+            if pos.shape == (3,) and np.all(np.isfinite(pos)) and math.isfinite(norm) and norm > 0.5:
+                T_mocap_body = Transform.from_quat_wxyz(pos, quat_wxyz / norm)
+                pose = MocapPose(stamp_ns, name, self.T_world_mocap @ T_mocap_body, True, seq, received_s)
+                seen.add(name)
+            else:
+                pose = self._invalid(name, stamp_ns, seq, received_s)
+            self._store.update(pose)
+        for name in self._present - seen:
+            if name not in rigid_bodies:  # gone from the frame (NaN bodies were stored above)
+                self._store.update(self._invalid(name, stamp_ns, self._seq.get(name, 0), received_s))
+        self._present = seen
+        self._first_frame.set()
+
+    def _invalid(self, name: str, stamp_ns: int, seq: int, received_s: float) -> MocapPose:
+        prev = self._store.latest(name)
+        T = prev.T_world_body if prev is not None else Transform.identity()
+        return MocapPose(stamp_ns, name, T, False, seq, received_s)
+
+    # -- lifecycle
+    async def start(self) -> Self:
+        """Start the thread and wait for the first frame.
+
+        Raises:
+            MocapError: no frame within ``connect_timeout_s`` (the thread is abandoned), or
+                the library refused the connection.
+        """
+        if self._thread is not None:
+            return self
+        self._thread = threading.Thread(target=self._run, name=f"motioncapture-{self.system_type}", daemon=True)
+        self._thread.start()
+        step_s = min(0.01, self.connect_timeout_s)
+        waited_s = 0.0
+        while not self._first_frame.is_set():
+            if waited_s >= self.connect_timeout_s:
+                self._stop.set()
+                raise MocapError(
+                    f"no frame from motioncapture {self._describe()} within {self.connect_timeout_s:g} s; "
+                    "is the mocap server running and reachable, and streaming?"
+                )
+            await self.clock.sleep(step_s)
+            waited_s += step_s
+        self._store.check_failed()
+        logger.info("motioncapture %s streaming, bodies: %s", self._describe(), ", ".join(self.bodies()) or "none")
+        return self
+
+    def close(self) -> None:
+        """Ask the thread to stop (it exits after its current wait) and end iterators; idempotent."""
+        self._stop.set()
+        self._store.close()
+        thread = self._thread
+        if thread is not None and thread.is_alive():
+            thread.join(timeout=0.2)  # a stalled waitForNextFrame never returns: the daemon is abandoned
+
+    # -- MocapSource
+    def bodies(self) -> tuple[str, ...]:
+        return self._store.bodies()
+
+    def latest(self, body: str) -> MocapPose | None:
+        return self._store.latest(body)
+
+    async def wait_for_body(self, body: str, timeout_s: float) -> MocapPose:
+        """Wait for a valid pose of ``body`` (``timeout_s`` on the clock); MocapBodyMissing otherwise."""
+        return await self._store.wait_for_body(body, timeout_s)
+
+    def poses(self, body: str | None = None) -> AsyncIterator[MocapPose]:
+        return self._store.poses(body)
+
+    async def __aenter__(self) -> Self:
+        return await self.start()
+
+    async def __aexit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+        await asyncio.sleep(0)
+
+    def __repr__(self) -> str:
+        return f"MotionCaptureSource({self._describe()!r}, bodies={list(self.bodies())})"

@@ -1,0 +1,254 @@
+"""Mocap sources against real backends: libmotioncapture's mock system, the simulated mocap
+publisher over real Zenoh sessions on loopback, and forwarding to the simulated autopilot
+over a real MAVLink UDP link."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import threading
+import time
+from collections.abc import Callable
+
+import numpy as np
+import pytest
+
+from flightkit.bus.keys import Keys
+from flightkit.bus.msgs import PoseStamped
+from flightkit.bus.pubsub import BusSubscriber
+from flightkit.bus.session import open_session
+from flightkit.clock import LockstepClock, SimClock
+from flightkit.config import BusConfig, MocapConfig, MocapSourceKind, TransformConfig
+from flightkit.errors import MocapBodyMissing, MocapError
+from flightkit.frames import Transform
+from flightkit.mocap import ForwardStats, MocapSource, MotionCaptureSource, forward_to_vehicle, mock_rigid_bodies, open_mocap
+from flightkit.mocap.bus_source import BusMocapSource
+from flightkit.sim.mocap_publisher import SimMocapPublisher
+from tests.conftest import free_tcp_port
+
+pytestmark = pytest.mark.timeout(90)
+
+T_WORLD_MOCAP = Transform.from_xyz_euler_deg([0.5, -0.3, 0.0], "z", [30.0])
+T_WORLD_UAV = Transform.from_xyz_euler_deg([1.0, 2.0, 1.5], "xyz", [5.0, -3.0, 120.0])
+
+
+def wait_until(pred: Callable[[], bool], timeout_s: float = 5.0, what: str = "condition") -> None:
+    deadline = time.monotonic() + timeout_s
+    ev = threading.Event()
+    while not pred():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        ev.wait(0.005)
+
+
+# ----------------------------------------------------------------------------- motioncapture (mock)
+
+
+def test_motioncapture_mock_maps_into_the_world_and_counts_frames() -> None:
+    T_mocap_uav = T_WORLD_MOCAP.inverse() @ T_WORLD_UAV
+    T_mocap_box = Transform.from_xyz_yaw([3.0, 0.0, 0.2], 0.0)
+    clock = SimClock(speed=1.0)
+
+    async def main() -> None:
+        src = MotionCaptureSource(
+            "mock", clock, options={"rigid_bodies": mock_rigid_bodies({"uav1": T_mocap_uav, "box": T_mocap_box}),
+                                    "rate": 200},
+            T_world_mocap=T_WORLD_MOCAP,
+        )
+        assert isinstance(src, MocapSource)
+        async with src:
+            pose = await src.wait_for_body("uav1", timeout_s=2.0)
+            # libmotioncapture stores float32: compare at its precision
+            assert pose.T_world_body.almost_equal(T_WORLD_UAV, tol_m=1e-5, tol_rad=1e-5)
+            assert pose.valid and pose.body == "uav1" and pose.seq >= 1
+            assert abs(pose.stamp_ns - clock.time_ns()) < 2_000_000_000
+            seqs = []
+            async for p in src.poses("uav1"):
+                seqs.append(p.seq)
+                if len(seqs) == 5:
+                    break
+            assert seqs == list(range(seqs[0], seqs[0] + 5))
+            assert src.bodies() == ("box", "uav1")
+            with pytest.raises(MocapBodyMissing) as info:
+                await src.wait_for_body("ghost", timeout_s=0.1)
+            assert info.value.visible == ("box", "uav1") and "visible bodies: box, uav1" in str(info.value)
+        assert src.frames >= 5
+
+    asyncio.run(main())
+
+
+def test_motioncapture_errors_are_mocap_errors() -> None:
+    async def main() -> None:
+        with pytest.raises(MocapError, match="motioncapture nosuch failed: Unknown motion capture type"):
+            async with MotionCaptureSource("nosuch", SimClock(1.0), connect_timeout_s=2.0):
+                pass
+        # A Vicon server that does not answer: connect() blocks in the library; we give up in time.
+        port = free_tcp_port()
+        with pytest.raises(MocapError, match="no frame from motioncapture vicon at 127.0.0.1"):
+            async with MotionCaptureSource("vicon", SimClock(1.0), hostname=f"127.0.0.1:{port}", connect_timeout_s=0.3):
+                pass
+
+    asyncio.run(main())
+
+
+# ----------------------------------------------------------------------------- bus source + sim publisher
+
+
+def _pair() -> tuple[object, object]:
+    port = free_tcp_port()
+    a = open_session(BusConfig(listen=(f"tcp/127.0.0.1:{port}",)))
+    b = open_session(BusConfig(connect=(f"tcp/127.0.0.1:{port}",), listen=("tcp/127.0.0.1:0",)))
+    return a, b
+
+
+def test_sim_publisher_sends_the_mocap_frame_and_bus_source_maps_it_to_the_world() -> None:
+    clock = SimClock(speed=5.0)
+    keys = Keys("uav1")
+    a, b = _pair()
+
+    def truth() -> tuple[int, Transform]:
+        return clock.time_ns(), T_WORLD_UAV
+
+    async def main() -> None:
+        raw = BusSubscriber(a, keys.mocap_pose("uav1"), maxlen=10_000)
+        src = BusMocapSource(a, keys, clock, T_WORLD_MOCAP)
+        pub = SimMocapPublisher(b, keys, "uav1", truth, clock, T_WORLD_MOCAP, rate_hz=100.0)
+        async with src, pub:
+            pose = await src.wait_for_body("uav1", timeout_s=10.0)
+            # the wire carries T_mocap_body, not the world pose
+            msg = PoseStamped.decode(raw.get(timeout_s=5.0).payload)
+            assert msg.header.frame_id == "mocap"
+            assert msg.to_transform().almost_equal(T_WORLD_MOCAP.inverse() @ T_WORLD_UAV, 1e-9, 1e-9)
+            assert not msg.to_transform().almost_equal(T_WORLD_UAV, 1e-3, 1e-3)
+            # the source maps it back into the world
+            assert pose.valid and pose.T_world_body.almost_equal(T_WORLD_UAV, 1e-9, 1e-9)
+            assert abs(pose.received_s - clock.monotonic_s()) < 1.0
+
+            # occlusion: NaN on the wire -> valid=False with the last known pose
+            pub.hide_body()
+            async for p in src.poses("uav1"):
+                if not p.valid:
+                    assert p.T_world_body.almost_equal(T_WORLD_UAV, 1e-9, 1e-9)
+                    break
+            with pytest.raises(MocapBodyMissing, match="visible bodies: none"):
+                await src.wait_for_body("uav1", timeout_s=0.05)
+            pub.show_body()
+            assert (await src.wait_for_body("uav1", timeout_s=5.0)).valid
+
+            # dropout: nothing arrives for 1 s of clock time, then the stream resumes
+            before = pub.published
+            pub.drop_for(1.0)
+            t0 = clock.monotonic_s()
+            async for p in src.poses("uav1"):
+                if p.received_s - t0 > 0.05:
+                    break
+            assert clock.monotonic_s() - t0 >= 0.9
+            assert pub.dropped > 0 and pub.published > before
+            assert src.missed("uav1") == 0  # a dropout is silence, not lost messages
+            with pytest.raises(MocapBodyMissing) as info:
+                await src.wait_for_body("uav2", timeout_s=0.05)
+            assert info.value.visible == ("uav1",)
+        raw.close()
+
+    try:
+        asyncio.run(main())
+    finally:
+        b.close()  # type: ignore[attr-defined]
+        a.close()  # type: ignore[attr-defined]
+
+
+def test_sim_publisher_noise_is_seeded_and_has_the_configured_spread() -> None:
+    a, b = _pair()
+    try:
+        clock = LockstepClock()
+        kw = dict(T_world_mocap=T_WORLD_MOCAP, rate_hz=100.0, noise_m=0.01, noise_rad=0.0)
+        p1 = SimMocapPublisher(b, Keys("n1"), "uav1", lambda: (0, T_WORLD_UAV), clock, seed=3, **kw)  # type: ignore[arg-type]
+        p2 = SimMocapPublisher(b, Keys("n2"), "uav1", lambda: (0, T_WORLD_UAV), clock, seed=3, **kw)  # type: ignore[arg-type]
+        exact = (T_WORLD_MOCAP.inverse() @ T_WORLD_UAV).translation
+        d1 = np.array([p1.mocap_pose(T_WORLD_UAV).translation - exact for _ in range(2000)])
+        d2 = np.array([p2.mocap_pose(T_WORLD_UAV).translation - exact for _ in range(2000)])
+        np.testing.assert_array_equal(d1, d2)
+        assert 0.009 < float(d1.std()) < 0.011 and abs(float(d1.mean())) < 0.001
+        p1.stop()
+        p2.stop()
+    finally:
+        b.close()
+        a.close()
+
+
+def test_open_mocap_builds_the_configured_source() -> None:
+    port = free_tcp_port()
+    bus_cfg = BusConfig(well_known_port=port)
+    cfg = MocapConfig(source=MocapSourceKind.BUS, T_world_mocap=TransformConfig(rpy_deg=(0.0, 0.0, 30.0)))
+    clock = SimClock(speed=1.0)
+
+    async def main() -> None:
+        src = open_mocap(cfg, bus_cfg, Keys("uav1"), clock)
+        assert isinstance(src, BusMocapSource)
+        assert src.T_world_mocap.almost_equal(Transform.from_xyz_euler_deg([0, 0, 0], "z", [30.0]), 1e-12, 1e-12)
+        async with src:
+            with pytest.raises(MocapBodyMissing):
+                await src.wait_for_body("uav1", timeout_s=0.05)
+        mc = open_mocap(
+            MocapConfig(source=MocapSourceKind.MOTIONCAPTURE, system_type="mock",
+                        options={"rigid_bodies": "cf1(0,0,1,1,0,0,0)"}),
+            bus_cfg, Keys("uav1"), clock,
+        )
+        assert isinstance(mc, MotionCaptureSource)
+        async with mc:
+            p = await mc.wait_for_body("cf1", timeout_s=2.0)
+            assert np.allclose(p.T_world_body.translation, [0.0, 0.0, 1.0])
+
+    asyncio.run(main())
+
+
+# ----------------------------------------------------------------------------- forwarding to the autopilot
+
+
+def test_forward_to_vehicle_feeds_the_sim_autopilots_estimator() -> None:
+    from flightkit.config import Autopilot, LinkConfig
+    from flightkit.link.mavlink import MavlinkLink
+    from flightkit.sim.autopilot import AutopilotOptions
+    from flightkit.sim.lab import SimLab
+
+    clock = SimClock(speed=5.0)
+    keys = Keys("uav1")
+    a, b = _pair()
+    lab = SimLab(
+        autopilot="px4", clock=clock, url="udpin:127.0.0.1:0",
+        options=AutopilotOptions(params={"EKF2_EV_CTRL": 15}), start_pos_enu_m=(1.0, 2.0, 0.0),
+        start_yaw_rad=0.7, ready_after_s=0.0,
+    )
+
+    def truth() -> tuple[int, Transform]:
+        return clock.time_ns(), lab.T_world_body()
+
+    async def main() -> None:
+        link = MavlinkLink(LinkConfig(url=lab.client_url, heartbeat_timeout_s=5.0), Autopilot.PX4, clock)
+        stats = ForwardStats()
+        async with link, BusMocapSource(a, keys, clock, T_WORLD_MOCAP) as src, SimMocapPublisher(
+            b, keys, "uav1", truth, clock, T_WORLD_MOCAP, rate_hz=120.0
+        ):
+            await src.wait_for_body("uav1", timeout_s=10.0)
+            task = asyncio.create_task(forward_to_vehicle(src, link, "uav1", rate_hz=30.0, stats=stats))
+            try:
+                deadline = clock.monotonic_s() + 20.0
+                while not any(e.kind == "vision" and e.detail == "fusing" for e in lab.event_log):
+                    assert clock.monotonic_s() < deadline, f"the autopilot never fused vision ({stats})"
+                    await clock.sleep(0.1)
+                await clock.sleep(1.0)
+                t = link.telemetry
+                # with vision fused, the autopilot's local position is the world position
+                assert np.allclose(t.pos_local_enu_m, [1.0, 2.0, 0.0], atol=0.05), t.pos_local_enu_m
+                assert math.isclose(t.yaw_local_rad, 0.7, abs_tol=0.05)
+            finally:
+                task.cancel()
+                with pytest.raises(asyncio.CancelledError):
+                    await task
+        assert stats.sent >= 20 and stats.invalid == 0
+
+    with lab:
+        try:
+            asyncio.run(main())
+        finally:
+            b.close()
+            a.close()
