@@ -342,7 +342,8 @@ def read_mcap_samples(path: str | Path, topic: str | None = None) -> list[PoseSa
         DatasetError: when the file has no (or several, with ``topic`` None) pose topics.
     """
     from mcap.reader import make_reader
-    from mcap_ros2.decoder import DecoderFactory
+
+    from flightkit.bus.msgs import PoseStamped
 
     p = Path(path)
     try:
@@ -350,7 +351,7 @@ def read_mcap_samples(path: str | Path, topic: str | None = None) -> list[PoseSa
     except OSError as exc:
         raise DatasetError(f"cannot open recording {p}: {exc.strerror}; check the path") from exc
     with fh:
-        reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+        reader = make_reader(fh)
         summary = reader.get_summary()
         channels = summary.channels.values() if summary else []
         schemas = summary.schemas if summary else {}
@@ -373,13 +374,10 @@ def read_mcap_samples(path: str | Path, topic: str | None = None) -> list[PoseSa
                 f"{p} has no PoseStamped topic {topic!r}; it has: {', '.join(pose_topics) or 'none'}"
             )
         out: list[PoseSample] = []
-        for _schema, _channel, message, msg in reader.iter_decoded_messages(topics=[topic]):
-            stamp = msg.header.stamp
-            stamp_ns = int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec) or int(message.log_time)
-            pos, q = msg.pose.position, msg.pose.orientation
-            out.append(
-                PoseSample(stamp_ns, Transform.from_quat_xyzw([pos.x, pos.y, pos.z], [q.x, q.y, q.z, q.w]))
-            )
+        for _schema, _channel, message in reader.iter_messages(topics=[topic]):
+            msg = PoseStamped.decode(message.data)
+            stamp_ns = msg.header.stamp_ns or int(message.log_time)
+            out.append(PoseSample(stamp_ns, msg.to_transform()))
     return out
 
 
