@@ -410,7 +410,7 @@ async def fly_closed_loop(
                 async def watch_estimate() -> None:
                     while True:
                         await clock.sleep(0.1)
-                        if lab.autopilot._ev_active:  # noqa: SLF001 - the simulator's own state, for scoring
+                        if lab.autopilot.vision_fusion_active:
                             # vision poses are sent in world coordinates: the fused local frame is the world
                             est = lab.autopilot.estimate_local_enu_m()
                             latest = vo.latest

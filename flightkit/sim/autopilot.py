@@ -424,6 +424,11 @@ class SimAutopilot:
         with self._lock:
             return self.dynamics.state(), self._last_tick_s
 
+    @property
+    def vision_fusion_active(self) -> bool:
+        """True while external vision poses drive the position estimate."""
+        return self._ev_active
+
     def estimate_local_enu_m(self) -> npt.NDArray[np.float64]:
         """The autopilot's position estimate in its local frame, ENU."""
         with self._lock:
