@@ -3,7 +3,11 @@
 libmotioncapture's calls block without a timeout (``connect`` to an unreachable server,
 ``waitForNextFrame`` when the stream stops), so they run on one daemon thread that the
 source can abandon: entering waits for the first frame with a timeout, leaving asks the
-thread to stop and does not wait for a frame that may never come.
+thread to stop and does not wait for a frame that may never come. ``waitForNextFrame``
+releases the GIL while it waits, but ``connect`` does not: for Vicon and Qualisys the
+server's TCP port is probed first (with a timeout), so an unreachable server gives a
+MocapError instead of a frozen interpreter. A server that accepts TCP but never answers
+can still freeze ``connect``.
 
 Per body: ``seq`` counts the frames it appeared in, ``stamp_ns``/``received_s`` come from
 the injected clock when the frame arrived (the Python binding exposes no system
@@ -16,6 +20,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+import socket
 import threading
 from collections.abc import AsyncIterator, Mapping, Sequence
 from types import TracebackType
@@ -32,6 +37,29 @@ from flightkit.mocap.store import PoseStore
 __all__ = ["MotionCaptureSource", "mock_rigid_bodies"]
 
 logger = logging.getLogger(__name__)
+
+# TCP servers we can probe before libmotioncapture's connect(), which blocks *holding the
+# GIL* (the whole interpreter freezes) when the server does not answer.
+_TCP_DEFAULT_PORTS = {"vicon": 801, "qualisys": 22223}
+
+
+def _probe_tcp(system_type: str, hostname: str, timeout_s: float) -> None:
+    default_port = _TCP_DEFAULT_PORTS.get(system_type)
+    if default_port is None or not hostname:
+        return
+    host, sep, port_text = hostname.rpartition(":")
+    if not sep or not port_text.isdigit():
+        host, port = hostname, default_port
+    else:
+        port = int(port_text)
+    try:
+        with socket.create_connection((host, port), timeout=timeout_s):
+            pass
+    except OSError as exc:
+        raise MocapError(
+            f"cannot reach the {system_type} server at {host}:{port} ({exc.strerror or exc}); "
+            "check mocap.hostname and that the mocap software is streaming"
+        ) from exc
 
 
 def mock_rigid_bodies(bodies: Mapping[str, Transform]) -> str:
@@ -151,6 +179,7 @@ class MotionCaptureSource:
         """
         if self._thread is not None:
             return self
+        await asyncio.to_thread(_probe_tcp, self.system_type, self.hostname, min(2.0, self.connect_timeout_s))
         self._thread = threading.Thread(target=self._run, name=f"motioncapture-{self.system_type}", daemon=True)
         self._thread.start()
         step_s = min(0.01, self.connect_timeout_s)

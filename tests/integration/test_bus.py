@@ -294,9 +294,9 @@ def test_subprocess_publisher_to_in_process_subscriber() -> None:
 
 
 def test_mcap_with_our_schemas_opens_in_mcap_ros2_and_rosbags(tmp_path: Path) -> None:
+    from mcap.reader import make_reader
     from mcap.writer import Writer
     from mcap_ros2.decoder import DecoderFactory
-    from mcap.reader import make_reader
     from rosbags.highlevel import AnyReader
 
     path = tmp_path / "bus.mcap"

@@ -229,8 +229,8 @@ def test_schema_text_parses_to_the_ros2_definitions(msgtype: str) -> None:
     cls = M.MESSAGE_TYPES[msgtype]
     parsed = get_types_from_msg(cls.SCHEMA, msgtype)
     assert msgtype in parsed
-    for name, (consts, fields) in parsed.items():
-        ref_consts, ref_fields = TS.fielddefs[name]
+    for name, (_consts, fields) in parsed.items():
+        _ref_consts, ref_fields = TS.fielddefs[name]
         assert [f[0] for f in fields] == [f[0] for f in ref_fields], name
         assert fields == ref_fields, name
 
