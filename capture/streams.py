@@ -56,13 +56,8 @@ def is_best_effort(msgtype: str) -> bool:
 
 
 def has_subscribers(pub: BusPublisher) -> bool:
-    """Whether a subscriber matches ``pub``'s key right now.
-
-    Reads Zenoh's ``MatchingStatus.matching`` (``BusPublisher.has_subscribers`` currently
-    takes ``bool()`` of the status object, which is always true).
-    """
-    status = pub._pub.matching_status  # noqa: SLF001
-    return bool(getattr(status, "matching", status))
+    """Whether a subscriber matches ``pub``'s key right now (Zenoh's matching status)."""
+    return pub.has_subscribers
 
 
 def optical_frame_id(keys: Keys, camera: str) -> str:

@@ -160,7 +160,7 @@ class BusPublisher:
         In peer mode it can be True a few milliseconds before samples are actually routed
         to a subscriber that was just declared elsewhere; do not use it as a handshake.
         """
-        return bool(self._pub.matching_status)
+        return bool(self._pub.matching_status.matching)
 
     def put(self, payload: bytes | bytearray, stamp_ns: int) -> int:
         """Send one encoded payload stamped ``stamp_ns``; returns its sequence number.
