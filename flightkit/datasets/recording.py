@@ -29,7 +29,8 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from flightkit.datasets import _cdr
+from flightkit.bus.cdr import CdrReader
+from flightkit.bus.msgs import CameraInfo, CompressedImage, Header, Image, PoseStamped
 from flightkit.datasets.base import CameraIntrinsics, Frame, SequenceKind, StereoRectification
 from flightkit.datasets.files import poses_at
 from flightkit.datasets.trajectory import Trajectory, associate
@@ -132,8 +133,8 @@ class McapSequence:
             set(self._topics.values()) | set(info_topics.values()) | ({mocap_topic} if mocap_topic else set())
         )
         stamps: dict[str, list[int]] = {k: [] for k in self._topics}
-        infos: dict[str, _cdr.CameraInfoMsg] = {}
-        poses: list[_cdr.PoseMsg] = []
+        infos: dict[str, CameraInfo] = {}
+        poses: list[PoseStamped] = []
         role_of = {t: k for k, t in self._topics.items()}
         info_role = {t: n for n, t in info_topics.items()}
         with path.open("rb") as fh:
@@ -144,9 +145,9 @@ class McapSequence:
                 if topic in role_of:
                     stamps[role_of[topic]].append(_stamp_of(channel.topic, message.data))
                 elif topic in info_role and info_role[topic] not in infos:
-                    infos[info_role[topic]] = _cdr.decode_camera_info(message.data)
+                    infos[info_role[topic]] = CameraInfo.decode(message.data)
                 elif topic == mocap_topic:
-                    poses.append(_cdr.decode_pose(message.data))
+                    poses.append(PoseStamped.decode(message.data))
         self._stamps = {k: np.array(v, dtype=np.int64) for k, v in stamps.items()}
         main = self._stamps["main"]
         if main.size == 0:
@@ -173,10 +174,10 @@ class McapSequence:
             self.baseline_m = float(-p[3] / p[0]) if p[0] else None
         self._mocap_traj = None
         if poses:
-            poses.sort(key=lambda m: m.stamp_ns)
+            poses.sort(key=lambda m: m.header.stamp_ns)
             self._mocap_traj = Trajectory(
-                np.array([m.stamp_ns for m in poses], dtype=np.int64),
-                np.array([m.position for m in poses]),
+                np.array([m.header.stamp_ns for m in poses], dtype=np.int64),
+                np.array([m.position_m for m in poses]),
                 quat_xyzw_to_wxyz(np.array([m.quat_xyzw for m in poses])),
                 f"mocap {body}",
             )
@@ -280,20 +281,19 @@ def _image_topic(topics: dict[str, str]) -> str:
 
 
 def _stamp_of(topic: str, data: bytes) -> int:
-    r = _cdr._Reader(data)
-    stamp, _ = r.header()
-    return stamp
+    """The header stamp of any stamped message, without decoding the rest."""
+    return Header.read(CdrReader(data)).stamp_ns
 
 
 def _decode_image(topic: str, data: bytes) -> npt.NDArray[np.generic]:
     if topic.endswith("/compressed"):
-        _, _fmt, payload = _cdr.decode_compressed(data)
+        payload = CompressedImage.decode(data).data
         img = cv2.imdecode(np.frombuffer(payload, np.uint8), cv2.IMREAD_UNCHANGED)
         if img is None:
             raise DatasetError(f"a compressed image on {topic} cannot be decoded")
         return np.asarray(img)
-    msg = _cdr.decode_image(data)
-    arr = _cdr.image_array(msg)
+    msg = Image.decode(data)
+    arr = msg.array()
     if msg.encoding in ("rgb8",):
         arr = cv2.cvtColor(arr, cv2.COLOR_RGB2BGR)
     elif msg.encoding in ("bgra8",):
@@ -303,7 +303,7 @@ def _decode_image(topic: str, data: bytes) -> npt.NDArray[np.generic]:
     return np.asarray(arr)
 
 
-def _intrinsics(info: _cdr.CameraInfoMsg) -> CameraIntrinsics:
+def _intrinsics(info: CameraInfo) -> CameraIntrinsics:
     k = info.k
     return CameraIntrinsics(k[0], k[4], k[2], k[5], info.width, info.height, tuple(info.d))
 
