@@ -241,10 +241,12 @@ def _run_vo(args: argparse.Namespace, cfg: Any, recording: Path, out: Path) -> N
 
 def _report_to_mapserver(recording: Path, cfg: Any, out: Path) -> Path:
     from estimation.report.demo import report_trajectory_over_pty
-    from flightkit.datasets import open_sequence
+    from estimation.report.reporter import read_mcap_samples
+    from flightkit.bus.keys import Keys
 
-    # Without T_body_camera the recording's ground truth is the body (mocap) trajectory itself.
-    seq = open_sequence(recording, mocap_body=cfg.mocap.body, T_world_mocap=cfg.mocap.T_world_mocap.to_transform())
-    body_traj = seq.groundtruth()
-    _say("6/6", f"reporting {len(body_traj)} poses to a mapping server over a pty pair (115200 baud, COBS+CRC)")
-    return report_trajectory_over_pty(body_traj, out / "mapserver")
+    # The recorded mocap poses are in the mocap frame; the reporter works in the world frame.
+    T_world_mocap = cfg.mocap.T_world_mocap.to_transform()
+    topic = "/" + Keys(cfg.vehicle.namespace).mocap_pose(cfg.mocap.body)
+    poses = [(s.stamp_ns, T_world_mocap @ s.T_world_body) for s in read_mcap_samples(recording, topic=topic)]
+    _say("6/6", f"reporting {len(poses)} poses to a mapping server over a pty pair (115200 baud, COBS+CRC)")
+    return report_trajectory_over_pty(poses, out / "mapserver")
