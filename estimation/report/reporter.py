@@ -402,6 +402,23 @@ async def replay_samples(
         yield PoseSample(t0_ns + int(due * 1e9), s.T_world_body, s.quality) if restamp else s
 
 
+async def bus_pose_samples(session: Any, key: str) -> AsyncIterator[PoseSample]:
+    """Poses of a ``geometry_msgs/msg/PoseStamped`` stream on the bus (e.g. VO odometry,
+    published in the world frame), as pose samples; runs until cancelled."""
+    from flightkit.bus.msgs import PoseStamped
+    from flightkit.bus.pubsub import BusSubscriber
+
+    sub = BusSubscriber(session, key)
+    try:
+        async for s in sub:
+            if s.msgtype and s.msgtype != PoseStamped.TYPE:
+                continue
+            msg = PoseStamped.decode(s.payload)
+            yield PoseSample(msg.header.stamp_ns or s.stamp_ns, msg.to_transform())
+    finally:
+        sub.close()
+
+
 async def mocap_samples(source: Any, body: str) -> AsyncIterator[PoseSample]:
     """Adapt a :class:`~flightkit.mocap.base.MocapSource` (already entered) to pose samples."""
     async for pose in source.poses(body):

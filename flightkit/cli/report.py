@@ -27,7 +27,10 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("--baud", type=int, help="baud rate (default 115200 or [report] baud)")
     p.add_argument("--source", default="mocap", help="bus, mocap, or a .tum/.txt/.mcap file (default mocap)")
-    p.add_argument("--topic", help="PoseStamped topic in an MCAP source (default: the only one)")
+    p.add_argument(
+        "--topic",
+        help="PoseStamped topic of an MCAP source (default: the only one), or a bus key with --source bus",
+    )
     p.add_argument("--rate", type=float, help="pose updates per second (default 20 or [report] rate_hz)")
     p.add_argument("--speed", type=float, default=1.0, help="replay speed of a file source (default 1)")
     p.add_argument("--robot-id", type=int, help="robot id on the map (default [report] robot_id)")
@@ -83,13 +86,12 @@ def run(args: argparse.Namespace) -> int:
 
     from estimation.report.reporter import (
         Reporter,
-        mocap_samples,
         read_mcap_samples,
         read_tum_samples,
         replay_samples,
     )
     from flightkit.clock import WallClock
-    from flightkit.errors import ConfigError, FlightkitError
+    from flightkit.errors import ConfigError
 
     cfg = _report_config(args)
     clock = WallClock()
@@ -106,24 +108,7 @@ def run(args: argparse.Namespace) -> int:
     async def main() -> int:
         async with Reporter.from_config(cfg, clock=clock) as rep:
             if source in ("bus", "mocap"):
-                try:
-                    from flightkit.mocap import open_mocap  # type: ignore[attr-defined]
-                except ImportError as exc:
-                    raise FlightkitError(
-                        f"--source {source} needs flightkit.mocap.open_mocap, which this build lacks; "
-                        "report from a recorded file instead (--source flight.tum)"
-                    ) from exc
-                import dataclasses
-
-                from flightkit.config import MocapSourceKind, load_config
-
-                lab = load_config(args.config) if args.config else load_config()
-                kind = MocapSourceKind.BUS if source == "bus" else MocapSourceKind.MOTIONCAPTURE
-                lab = dataclasses.replace(lab, mocap=dataclasses.replace(lab.mocap, source=kind))
-                async with open_mocap(lab) as mocap:
-                    n = await rep.run(
-                        mocap_samples(mocap, lab.mocap.body), cfg.rate_hz, until_s=args.duration
-                    )
+                n = await _run_live(rep, source, args, cfg, clock)
             else:
                 await asyncio.to_thread(rep.wait_connected, 10.0)
                 n = await rep.run(
@@ -140,3 +125,30 @@ def run(args: argparse.Namespace) -> int:
         return 0
 
     return asyncio.run(main())
+
+
+async def _run_live(rep: Any, source: str, args: argparse.Namespace, cfg: Any, clock: Any) -> int:
+    """Report live poses: ``mocap`` = the lab's mocap source as configured ([mocap]); ``bus`` =
+    a PoseStamped stream on the bus (``--topic KEY``, e.g. VO odometry), or mocap on the bus."""
+    import dataclasses
+
+    from estimation.report.reporter import bus_pose_samples, mocap_samples
+    from flightkit.bus.keys import Keys
+    from flightkit.config import MocapSourceKind, load_config
+    from flightkit.mocap import open_mocap
+
+    lab = load_config(args.config) if args.config else load_config()
+    keys = Keys(lab.vehicle.namespace)
+    if source == "bus" and args.topic:
+        from flightkit.bus.session import open_session
+
+        session = open_session(lab.bus)
+        try:
+            return int(await rep.run(bus_pose_samples(session, args.topic), cfg.rate_hz, until_s=args.duration))
+        finally:
+            session.close()
+    mocap_cfg = lab.mocap
+    if source == "bus":
+        mocap_cfg = dataclasses.replace(mocap_cfg, source=MocapSourceKind.BUS)
+    async with open_mocap(mocap_cfg, lab.bus, keys, clock) as mocap:
+        return int(await rep.run(mocap_samples(mocap, lab.mocap.body), cfg.rate_hz, until_s=args.duration))

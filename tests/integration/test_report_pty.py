@@ -225,3 +225,48 @@ def _chain(*fns):  # type: ignore[no-untyped-def]
                 f(ev)
 
     return call
+
+
+def test_cli_reports_live_mocap_from_the_bus_in_the_world_frame(tmp_path: Path) -> None:
+    """`flightkit report --source bus`: sim mocap (published in the mocap frame) -> Zenoh -> reporter -> server."""
+    import socket
+
+    from flightkit.bus.keys import Keys
+    from flightkit.bus.session import open_session
+    from flightkit.clock import WallClock
+    from flightkit.config import load_config
+    from flightkit.frames import Transform
+    from flightkit.sim.mocap_publisher import SimMocapPublisher
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    lab = tmp_path / "lab.toml"
+    lab.write_text(
+        f"[bus]\nwell_known_port = {port}\n[mocap]\nsource = 'bus'\nbody = 'uav1'\n"
+        "[mocap.T_world_mocap]\ntranslation_m = [0.5, -0.3, 0.0]\nrpy_deg = [0.0, 0.0, 30.0]\n"
+        "[report]\nrobot_id = 7\nname = 'live'\n"
+    )
+    cfg = load_config(lab)
+    T_world_body = Transform.from_xyz_yaw([1.0, 2.0, 1.5], 0.3)
+    clock = WallClock()
+    session = open_session(cfg.bus)
+    pub = SimMocapPublisher(
+        session, Keys("uav1"), "uav1", lambda: (clock.time_ns(), T_world_body), clock,
+        T_world_mocap=cfg.mocap.T_world_mocap.to_transform(), rate_hz=100.0,
+    )
+    try:
+        with pub, PtyRelay(tmp_path, baud=115200) as relay, MapServer([relay.path_b]) as server:
+            rc = cli_main(
+                ["report", "--port", relay.path_a, "--source", "bus", "--rate", "20", "--duration", "1.5",
+                 "--config", str(lab)]
+            )
+            assert rc == 0
+            (robot,) = server.wait_for(lambda rs: bool(rs) and rs[0].pose is not None, 5.0)
+    finally:
+        session.close()
+    assert robot.name == "live" and robot.robot_id == 7
+    assert robot.poses >= 10
+    # the reporter applied T_world_mocap: the server sees the world position, not the mocap one
+    assert robot.pose is not None
+    assert (robot.pose.x, robot.pose.y) == pytest.approx((1.0, 2.0), abs=0.01)
