@@ -3,10 +3,11 @@
 1. Lab workload: colour (rgb8) and depth (16UC1) at 848x480, 30 Hz, plus mocap at 240 Hz:
    missed messages, recorder CPU (cores), publish-to-disk latency p50/p99 (publish stamp to
    the chunk holding the message reaching the OS), with and without compression.
-2. Peak: raise the image rate until messages are lost; the highest zero-loss MB/s, as a ratio
-   to a bare mcap writer loop writing the same bytes in the same run (none, zstd, lz4).
+2. Peak: raise the image rate until messages are lost (twice in a row, unless --no-retry); the
+   highest zero-loss MB/s, as a ratio to a bare mcap writer loop writing the same bytes in the
+   same run (none, zstd, lz4); the recorder's own writer in a bare loop is shown beside it.
 
-    .venv/bin/python bench/capture.py [--quick]
+    .venv/bin/python bench/capture.py [--quick] [--peak-only] [--compressions none zstd lz4] [--no-retry]
 """
 
 from __future__ import annotations
@@ -39,8 +40,51 @@ def free_port() -> int:
 # --------------------------------------------------------------------------- recorder process
 
 
+class McapPackageWriter:
+    """The ``mcap`` package's Writer behind the FastMcapWriter interface: the recorder as it was
+    before capture.mcapwriter (``--writer mcap``), for before/after figures in one run."""
+
+    def __init__(self, fh: object, compression: str = "") -> None:
+        from mcap.writer import CompressionType, Writer
+
+        comp = {"": CompressionType.NONE, "zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4}[compression]
+        self._fh = fh
+        self._w = Writer(fh, chunk_size=1 << 62, compression=comp)  # type: ignore[arg-type]
+        self.chunk_bytes = 0
+
+    def start(self, profile: str = "", library: str = "") -> None:
+        self._w.start(profile=profile, library=library)
+
+    def register_schema(self, name: str, encoding: str, data: bytes) -> int:
+        return self._w.register_schema(name, encoding, data)
+
+    def register_channel(self, topic: str, message_encoding: str, schema_id: int, metadata: dict[str, str]) -> int:
+        return self._w.register_channel(topic, message_encoding, schema_id, metadata)
+
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        self._w.add_metadata(name, data)
+
+    def add_message(self, channel_id: int, log_time: int, data: bytes, publish_time: int, sequence: int) -> None:
+        self._w.add_message(channel_id, log_time, bytes(data), publish_time, sequence)
+
+    @property
+    def bytes_written(self) -> int:
+        return self._fh.tell()  # type: ignore[attr-defined,no-any-return]
+
+    def flush_chunk(self) -> int:
+        self._w.flush()
+        return 0
+
+    def finish(self) -> None:
+        self._w.finish()
+
+
 def recorder_role(args: argparse.Namespace) -> int:
+    import capture.recorder
     from capture.session import BusRecorder
+
+    if args.writer == "mcap":
+        capture.recorder.FastMcapWriter = McapPackageWriter  # type: ignore[misc,assignment]
     from flightkit.bus.session import open_session
     from flightkit.config import BusConfig
 
@@ -85,16 +129,43 @@ def recorder_role(args: argparse.Namespace) -> int:
     return 0
 
 
+# --------------------------------------------------------------------------- publisher process
+
+
+def publisher_role(args: argparse.Namespace) -> int:
+    """The synthetic publisher, with a clean start and end so that only real drops count as lost:
+    Zenoh's matching status can turn true a few ms before samples are routed (the first frames
+    would vanish without a sequence gap), and closing the session at once can discard the last
+    queued samples."""
+    from capture.sources.synthetic import SyntheticPublisher
+    from flightkit.bus.keys import Keys
+    from flightkit.bus.session import open_session
+    from flightkit.config import BusConfig
+
+    with open_session(BusConfig(connect=(f"tcp/127.0.0.1:{args.port}",))) as s:
+        pub = SyntheticPublisher(s, Keys("uav1"), width_px=args.width, height_px=args.height,
+                                 camera_hz=args.camera_hz, mocap_hz=args.mocap_hz)
+        try:
+            pub.wait_for_subscribers(20.0)
+            time.sleep(0.5)
+            pub.run(args.duration)
+            time.sleep(1.0)
+        finally:
+            pub.close()
+        print(f"published {pub.frames} frames and {pub.poses} poses", flush=True)
+    return 0
+
+
 # --------------------------------------------------------------------------- one trial
 
 
 def trial(tmp: Path, compression: str, width: int, height: int, camera_hz: float, mocap_hz: float,
-          duration_s: float) -> dict[str, object]:
+          duration_s: float, writer: str = "flightkit") -> dict[str, object]:
     port = free_port()
     out = tmp / f"bench_{compression}.mcap"
     rec = subprocess.Popen(
         [PY, __file__, "--role", "recorder", "--port", str(port), "--out", str(out), "--compression", compression,
-         "--timeout", str(duration_s + 60)],
+         "--timeout", str(duration_s + 60), "--writer", writer],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
     )
     assert rec.stdout is not None
@@ -102,7 +173,7 @@ def trial(tmp: Path, compression: str, width: int, height: int, camera_hz: float
     if "ready" not in line:
         raise RuntimeError(f"recorder did not start: {line} {rec.communicate()[1]}")
     pub = subprocess.run(
-        [PY, "-m", "capture.sources.synthetic", "--connect", f"tcp/127.0.0.1:{port}", "--width", str(width),
+        [PY, __file__, "--role", "publisher", "--port", str(port), "--width", str(width),
          "--height", str(height), "--camera-hz", str(camera_hz), "--mocap-hz", str(mocap_hz),
          "--duration", str(duration_s)],
         capture_output=True, text=True, cwd=ROOT, timeout=duration_s + 120,
@@ -124,6 +195,36 @@ def trial(tmp: Path, compression: str, width: int, height: int, camera_hz: float
 
 
 # --------------------------------------------------------------------------- bare writer baseline
+
+
+def bare_fast_writer_mb_s(tmp: Path, compression: str, width: int, height: int, frames: int) -> float:
+    """The recorder's own writer (capture.mcapwriter) in a bare loop, same payloads as below."""
+    from capture.mcapwriter import FastMcapWriter
+    from flightkit.bus.msgs import Header, Image, schema_text
+
+    rng = np.random.default_rng(7)
+    rgb = bytes(Image.from_array(Header(0, "c"), rng.integers(0, 256, (height, width, 3), dtype=np.uint8), "rgb8")
+                .encode())
+    dep = bytes(Image.from_array(Header(0, "d"), rng.integers(300, 8000, (height, width), dtype=np.uint16), "16UC1")
+                .encode())
+    path = tmp / f"bare_fast_{compression}.mcap"
+    t0 = time.perf_counter()
+    with path.open("wb", buffering=0) as fh:
+        w = FastMcapWriter(fh, "" if compression == "none" else compression)
+        w.start("ros2", "bench")
+        sid = w.register_schema("sensor_msgs/msg/Image", "ros2msg", schema_text("sensor_msgs/msg/Image").encode())
+        c1 = w.register_channel("/uav1/camera/color/image", "cdr", sid, {})
+        c2 = w.register_channel("/uav1/camera/depth/image", "cdr", sid, {})
+        for i in range(frames):
+            w.add_message(c1, i, rgb, i, i)
+            w.add_message(c2, i, dep, i, i)
+            if w.chunk_bytes >= 4 << 20:
+                w.flush_chunk()
+        w.finish()
+        os.fsync(fh.fileno())
+    dt = time.perf_counter() - t0
+    path.unlink()
+    return frames * (len(rgb) + len(dep)) / dt / 1e6
 
 
 def bare_writer_mb_s(tmp: Path, compression: str, width: int, height: int, frames: int) -> float:
@@ -162,7 +263,18 @@ def bare_writer_mb_s(tmp: Path, compression: str, width: int, height: int, frame
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="short runs (8 s lab workload, 3 s peak steps)")
-    ap.add_argument("--role", choices=("main", "recorder"), default="main", help=argparse.SUPPRESS)
+    ap.add_argument("--role", choices=("main", "recorder", "publisher"), default="main", help=argparse.SUPPRESS)
+    ap.add_argument("--peak-only", action="store_true", help="skip the lab workload")
+    ap.add_argument("--writer", choices=("flightkit", "mcap"), default="flightkit",
+                    help="the recorder's MCAP writer: capture.mcapwriter (default) or the mcap package's (as before)")
+    ap.add_argument("--no-retry", dest="retry", action="store_false",
+                    help="peak: stop at the first lossy step (default: a step fails when it loses twice in a row)")
+    ap.add_argument("--compressions", nargs="+", default=["none", "zstd", "lz4"], choices=("none", "zstd", "lz4"))
+    ap.add_argument("--width", type=int, default=848, help=argparse.SUPPRESS)
+    ap.add_argument("--height", type=int, default=480, help=argparse.SUPPRESS)
+    ap.add_argument("--camera-hz", type=float, default=30.0, help=argparse.SUPPRESS)
+    ap.add_argument("--mocap-hz", type=float, default=240.0, help=argparse.SUPPRESS)
+    ap.add_argument("--duration", type=float, default=3.0, help=argparse.SUPPRESS)
     ap.add_argument("--port", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--out", help=argparse.SUPPRESS)
     ap.add_argument("--compression", default="none", help=argparse.SUPPRESS)
@@ -170,32 +282,41 @@ def main() -> int:
     args = ap.parse_args()
     if args.role == "recorder":
         return recorder_role(args)
+    if args.role == "publisher":
+        return publisher_role(args)
     w, h = 848, 480
     lab_s = 8.0 if args.quick else 60.0
     step_s = 3.0 if args.quick else 10.0
     with tempfile.TemporaryDirectory(prefix="fk-bench-") as d:
         tmp = Path(d)
-        print(f"# capture bench: {w}x{h} rgb8 + 16UC1, mocap 240 Hz, publisher and recorder in separate processes")
-        print(f"## 1. lab workload ({lab_s:g} s at 30 Hz)")
-        print(f"{'compression':>11} {'published':>9} {'lost':>5} {'missed':>6} {'dropped':>7} {'cpu cores':>9} "
-              f"{'p50 ms':>7} {'p99 ms':>7} {'MB/s':>6} {'file MB':>8}")
-        for comp in ("none", "zstd", "lz4"):
-            r = trial(tmp, comp, w, h, 30.0, 240.0, lab_s)
+        print(f"# capture bench: {w}x{h} rgb8 + 16UC1, mocap 240 Hz, publisher and recorder in separate processes; "
+              f"recorder writer: {args.writer}")
+        if not args.peak_only:
+            print(f"## 1. lab workload ({lab_s:g} s at 30 Hz)")
+            print(f"{'compression':>11} {'published':>9} {'lost':>5} {'missed':>6} {'dropped':>7} {'cpu cores':>9} "
+                  f"{'p50 ms':>7} {'p99 ms':>7} {'MB/s':>6} {'file MB':>8}")
+        for comp in args.compressions if not args.peak_only else ():
+            r = trial(tmp, comp, w, h, 30.0, 240.0, lab_s, args.writer)
             print(f"{comp:>11} {r['published']:>9} {r['lost']:>5} {r['missed']:>6} {r['dropped']:>7} "
                   f"{r['cpu_cores']:>9.2f} {r['lat_p50_ms']:>7.1f} {r['lat_p99_ms']:>7.1f} "
                   f"{r['bytes'] / r['active_s'] / 1e6:>6.1f} {r['file_bytes'] / 1e6:>8.1f}", flush=True)
         print(f"## 2. peak: image rate raised until messages are lost ({step_s:g} s per step)")
-        for comp in ("none", "zstd", "lz4"):
+        for comp in args.compressions:
             best = None
             for hz in (30, 60, 90, 120, 180, 240, 360):
-                r = trial(tmp, comp, w, h, float(hz), 240.0, step_s)
-                ok = r["lost"] == 0 and r["missed"] == 0 and r["dropped"] == 0
-                # Sustained: bytes over the writer's busy time (first to last message written), so a
-                # backlog held in the recorder's queue does not count as throughput.
-                mb_s = r["bytes"] / r["active_s"] / 1e6
-                print(f"  {comp:>5} asked {hz:>3} Hz: got {r['image_hz']:6.1f} Hz, written {mb_s:6.1f} MB/s, "
-                      f"lost {r['lost']}, "
-                      f"missed {r['missed']}, dropped {r['dropped']}", flush=True)
+                for attempt in (1, 2):
+                    r = trial(tmp, comp, w, h, float(hz), 240.0, step_s, args.writer)
+                    ok = r["lost"] == 0 and r["missed"] == 0 and r["dropped"] == 0
+                    # Sustained: bytes over the writer's busy time (first to last message written), so a
+                    # backlog held in the recorder's queue does not count as throughput.
+                    mb_s = r["bytes"] / r["active_s"] / 1e6
+                    print(f"  {comp:>5} asked {hz:>3} Hz: got {r['image_hz']:6.1f} Hz, written {mb_s:6.1f} MB/s, "
+                          f"lost {r['lost']}, missed {r['missed']}, dropped {r['dropped']}, "
+                          f"recorder cpu {r['cpu_cores']:.2f}" + ("" if attempt == 1 else " (second try)"), flush=True)
+                    # On a machine shared with other jobs, one lossy step may be their doing: a step fails
+                    # only when it loses messages twice in a row.
+                    if ok or not args.retry:
+                        break
                 if not ok:
                     break
                 best = (hz, mb_s, r["frames"])
@@ -203,9 +324,10 @@ def main() -> int:
                     break
             frames = best[2] if best else 100
             bare = bare_writer_mb_s(tmp, comp, w, h, max(frames, 60))
+            fast = bare_fast_writer_mb_s(tmp, comp, w, h, max(frames, 60))
             if best:
                 print(f"  {comp:>5}: highest zero-loss {best[1]:.1f} MB/s at {best[0]} Hz; bare mcap writer "
-                      f"{bare:.1f} MB/s; ratio {best[1] / bare:.0%}")
+                      f"{bare:.1f} MB/s; ratio {best[1] / bare:.0%} (bare flightkit writer {fast:.1f} MB/s)")
             else:
                 print(f"  {comp:>5}: messages lost already at 30 Hz; bare mcap writer {bare:.1f} MB/s")
     return 0

@@ -12,6 +12,11 @@ back-pressuring the publishers. Chunks are closed every ``chunk_size`` bytes or
 ``chunk_max_age_s`` seconds, so a crash loses at most one chunk; before each chunk is
 written the recorder checks the free space (and the process's file-size limit), and on a
 full disk it stops with a clear message and leaves a valid file of everything written.
+
+Writing: :class:`~capture.mcapwriter.FastMcapWriter` keeps each payload by reference and
+hands a closed chunk to ``os.writev`` (or streams it through zstd/lz4), so the writer
+thread copies no payload bytes with the GIL held and the bus callback threads of the
+process are not starved (the ``mcap`` package's writer copied each payload twice).
 """
 
 from __future__ import annotations
@@ -27,9 +32,10 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from mcap.writer import CompressionType, Writer
+from mcap.writer import CompressionType
 
 from capture.mcapfile import finalize_in_place
+from capture.mcapwriter import FastMcapWriter
 from flightkit import __version__
 from flightkit.errors import CaptureError
 
@@ -38,6 +44,7 @@ __all__ = ["Compression", "Recorder", "RecordingReport", "StreamSample", "Stream
 logger = logging.getLogger(__name__)
 
 Compression = CompressionType
+_COMPRESSION_NAMES = {CompressionType.NONE: "", CompressionType.ZSTD: "zstd", CompressionType.LZ4: "lz4"}
 _RESERVE_BYTES = 64 << 10  # room kept free for the file's ending (+ 256 bytes per chunk written)
 
 
@@ -128,7 +135,7 @@ class RecordingReport:
 class _OpenFile:
     path: Path
     fh: object
-    writer: Writer
+    writer: FastMcapWriter
     channels: dict[str, int] = field(default_factory=dict)
     schemas: dict[str, int] = field(default_factory=dict)
     opened_ns: int = 0
@@ -274,14 +281,13 @@ class Recorder:
         path = self._next_path()
         self._file_index += 1
         try:
-            fh = path.open("wb")
+            fh = path.open("wb", buffering=0)  # the writer hands whole chunks to os.writev
         except OSError as exc:
             raise CaptureError(f"cannot create {path}: {exc.strerror}; check the folder and permissions") from exc
-        writer = Writer(fh, chunk_size=1 << 62, compression=self._compression)  # we close chunks ourselves
+        writer = FastMcapWriter(fh, _COMPRESSION_NAMES[self._compression])
         writer.start(profile="ros2", library=f"flightkit {__version__}")
         for name, data in self._metadata.items():
             writer.add_metadata(name, data)
-        writer.flush()
         self._current = _OpenFile(path, fh, writer, opened_ns=0, last_flush_s=time.monotonic())
         self._files.append(path)
         logger.info("recording to %s", path)
@@ -303,8 +309,7 @@ class Recorder:
         cur.chunks += 1
         if self._headroom_bytes(cur.path) < cur.unflushed + _RESERVE_BYTES + 256 * cur.chunks:
             raise _DiskFull(cur.path)
-        cur.writer.flush()
-        cur.fh.flush()  # type: ignore[attr-defined]
+        cur.writer.flush_chunk()
         cur.unflushed = 0
         cur.last_flush_s = time.monotonic()
         if self._on_flush is not None and self._chunk_stamps:
@@ -317,7 +322,6 @@ class Recorder:
             return
         self._flush_chunk()
         cur.writer.finish()
-        cur.fh.flush()  # type: ignore[attr-defined]
         os.fsync(cur.fh.fileno())  # type: ignore[attr-defined]
         cur.fh.close()  # type: ignore[attr-defined]
         self._current = None
@@ -326,7 +330,7 @@ class Recorder:
         cur = self._current
         assert cur is not None
         if self._split and cur.opened_ns and (
-            (self._split_bytes is not None and cur.fh.tell() + cur.unflushed >= self._split_bytes)  # type: ignore[attr-defined]
+            (self._split_bytes is not None and cur.writer.bytes_written + cur.unflushed >= self._split_bytes)
             or (self._split_ns is not None and s.log_time_ns - cur.opened_ns >= self._split_ns)
         ):
             self._finish_current()
@@ -347,8 +351,8 @@ class Recorder:
                 topic, "cdr", sid, {"offered_qos_profiles": qos_profile_yaml(s.reliable)}
             )
             cur.channels[s.topic] = ch
-        cur.writer.add_message(ch, s.log_time_ns, bytes(s.payload), s.publish_time_ns, s.seq & 0xFFFFFFFF)
-        cur.unflushed += len(s.payload) + 40
+        cur.writer.add_message(ch, s.log_time_ns, s.payload, s.publish_time_ns, s.seq & 0xFFFFFFFF)
+        cur.unflushed += len(s.payload) + 31
         if self._on_flush is not None:
             self._chunk_stamps.append(s.publish_time_ns)
         with self._lock:

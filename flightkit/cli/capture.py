@@ -1,11 +1,14 @@
-"""``flightkit capture info|recover``: inspect and salvage recordings."""
+"""``flightkit capture info|recover|publish``: inspect and salvage recordings, publish capture sources."""
 
 from __future__ import annotations
 
 import argparse
 import json
+import logging
 from datetime import UTC, datetime
 from typing import Any
+
+logger = logging.getLogger(__name__)
 
 
 def register(sub: Any) -> None:
@@ -21,6 +24,35 @@ def register(sub: Any) -> None:
     rec.add_argument("-o", "--output", required=True, help="the repaired .mcap file to write")
     rec.add_argument("--force", action="store_true", help="overwrite the output if it exists")
     rec.set_defaults(func=run_recover)
+    pub = cs.add_parser(
+        "publish",
+        help="publish a camera, video, RealSense, recording/dataset replay or mocap system on the bus",
+        description="SOURCE is camera:0 | camera:/dev/video2 | video:FILE | realsense | replay:RUN.mcap | "
+        "replay:DATASET_DIR | mocap (the [mocap] system of --config). Runs until the source ends, "
+        "--duration passes, or Ctrl-C/SIGTERM.",
+    )
+    pub.add_argument("source", metavar="SOURCE", help="what to publish (see above)")
+    pub.add_argument("--config", metavar="LAB.toml", help="lab config (namespace, bus endpoints, [capture], [mocap])")
+    pub.add_argument("--speed", type=float, default=1.0, metavar="X",
+                     help="replay and video files: X times the recorded rate (inf: as fast as the bus takes it)")
+    pub.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (wall clock)")
+    pub.add_argument("--calibration", metavar="FILE",
+                     help="camera calibration (JSON/YAML: fx, fy, cx, cy, width, height, dist)")
+    pub.add_argument("--format", choices=("bgr8", "rgb8", "jpeg"), default="bgr8",
+                     help="camera/video colour format on the bus (jpeg: CompressedImage only)")
+    pub.add_argument("--jpeg-quality", type=int, metavar="Q",
+                     help="JPEG quality (default [capture] jpeg_quality, or 90 with --format jpeg)")
+    pub.add_argument("--rate", type=float, metavar="HZ", help="camera: frame rate to ask for; video: playback rate")
+    pub.add_argument("--loop", action="store_true", help="video files: start again at the end")
+    pub.add_argument("--name", default="color", help="camera name in the keys (<ns>/camera/<name>/image)")
+    pub.add_argument("--key-prefix", default="", metavar="P", help="replay:RUN.mcap: publish under P/<topic>")
+    pub.add_argument("--gt-body", default="groundtruth", metavar="NAME",
+                     help="replay:DATASET_DIR: ground truth on <ns>/mocap/NAME/pose")
+    pub.add_argument("--wait-subscribers", type=float, default=0.0, metavar="S",
+                     help="wait up to S seconds for a subscriber (e.g. a recorder) before publishing")
+    pub.add_argument("--connect", nargs="+", metavar="ENDPOINT", help="Zenoh endpoints to connect to")
+    pub.add_argument("--listen", nargs="+", metavar="ENDPOINT", help="Zenoh endpoints to listen on")
+    pub.set_defaults(func=run_publish)
 
 
 def _iso(stamp_ns: int) -> str:
@@ -93,4 +125,199 @@ def run_recover(args: argparse.Namespace) -> int:
 
     report = recover(args.crashed, args.output, allow_overwrite=args.force)
     print(f"{args.output}: {report.summary()}")
+    return 0
+
+
+# --------------------------------------------------------------------------- publish
+
+
+def _publish_bus_config(args: argparse.Namespace, lab: Any) -> Any:
+    import dataclasses
+
+    cfg = lab.bus
+    if args.connect:
+        cfg = dataclasses.replace(cfg, connect=tuple(args.connect))
+    if args.listen:
+        cfg = dataclasses.replace(cfg, listen=tuple(args.listen))
+    return cfg
+
+
+def _parse_source(text: str) -> tuple[str, str]:
+    from flightkit.errors import ConfigError
+
+    kind, _, arg = text.partition(":")
+    if kind in ("realsense", "mocap") and not arg:
+        return kind, ""
+    if kind in ("camera", "video", "replay") and arg:
+        return kind, arg
+    raise ConfigError(
+        "<command line>", "SOURCE", f"{text!r} is not a source",
+        "use camera:0, camera:/dev/video2, video:FILE, realsense, replay:RUN.mcap, replay:DIR or mocap", text,
+    )
+
+
+def _make_source(kind: str, arg: str, args: argparse.Namespace, lab: Any, session: Any) -> Any:
+    import math
+    from pathlib import Path
+
+    from capture.config import CaptureConfig
+    from capture.streams import CameraModel
+    from flightkit.bus.keys import Keys
+    from flightkit.clock import SimClock, WallClock
+    from flightkit.errors import CaptureError
+
+    keys = Keys(lab.vehicle.namespace)
+    cap_cfg = lab.section("capture", CaptureConfig)
+    if not args.speed > 0:
+        raise CaptureError(f"--speed {args.speed} must be positive (1 = as recorded)")
+    if kind in ("camera", "video"):
+        from capture.sources.opencv import OpenCVCameraPublisher
+
+        quality = args.jpeg_quality if args.jpeg_quality is not None else (
+            cap_cfg.jpeg_quality or (90 if args.format == "jpeg" else 0))
+        model = None
+        if args.calibration is None and kind == "camera":
+            cam = lab.camera  # no calibration file: the [camera] section of the config
+            fx, fy, cx, cy = cam.intrinsics()
+            model = CameraModel(cam.width_px, cam.height_px, fx, fy, cx, cy)
+            logger.warning("camera %s: no --calibration given; publishing the [camera] intrinsics of the config", arg)
+        if kind == "video" and not Path(arg).is_file():
+            raise CaptureError(f"video {arg} does not exist; check the path")
+        speed = args.speed if math.isfinite(args.speed) else 1000.0
+        clock = SimClock(speed=speed) if kind == "video" and speed != 1.0 else WallClock()
+        return OpenCVCameraPublisher(
+            session, keys, arg, clock, model=model, calibration=args.calibration, name=args.name,
+            color_format=args.format, jpeg_quality=quality, rate_hz=args.rate, loop=args.loop,
+        )
+    if kind == "realsense":
+        from capture.sources.realsense import RealSensePublisher
+
+        cam = lab.camera
+        return RealSensePublisher(
+            session, keys, WallClock(), width_px=cam.width_px, height_px=cam.height_px,
+            rate_hz=int(args.rate or cam.rate_hz), depth=cap_cfg.depth, jpeg_quality=cap_cfg.jpeg_quality,
+        )
+    from capture.sources.replay import DatasetReplayPublisher, McapReplayPublisher
+
+    path = Path(arg)
+    if not path.exists():
+        raise CaptureError(f"{path} does not exist; give an .mcap recording or a dataset folder")
+    if path.is_file() and path.suffix.lower() == ".mcap":
+        return McapReplayPublisher(session, path, WallClock(), speed=args.speed, key_prefix=args.key_prefix)
+    return DatasetReplayPublisher(session, keys, path, WallClock(), speed=args.speed, gt_body=args.gt_body)
+
+
+def _wait_loop(source: Any, args: argparse.Namespace, stop: Any, console: Any) -> str:
+    import time
+
+    t0 = time.monotonic()
+    deadline = t0 + args.duration if args.duration else None
+    last = -1
+    while True:
+        if stop.is_set():
+            return "signal"
+        if source.finished:
+            return "end of source"
+        if deadline is not None and time.monotonic() >= deadline:
+            return "duration"
+        stop.wait(0.5 if deadline is None else max(0.0, min(0.5, deadline - time.monotonic())))
+        if source.published != last and console.is_terminal:
+            last = source.published
+            rate = last / max(1e-9, time.monotonic() - t0)
+            console.print(f"\r{last} {source.what} ({rate:.1f}/s)", end="")
+
+
+def run_publish(args: argparse.Namespace) -> int:
+    import signal
+    import threading
+    import time
+
+    from rich.console import Console
+
+    from flightkit.bus.session import open_session
+    from flightkit.config import load_config
+
+    kind, arg = _parse_source(args.source)
+    lab = load_config(args.config) if args.config else load_config()
+    stop = threading.Event()
+
+    def on_signal(signum: int, _frame: Any) -> None:
+        stop.set()
+
+    console = Console(stderr=True)
+    if kind == "mocap":
+        return _run_mocap(args, lab, console)
+    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        with open_session(_publish_bus_config(args, lab)) as session:
+            source = _make_source(kind, arg, args, lab, session)
+            console.print(f"publishing {args.source} on {', '.join(source.keys)} (Ctrl-C to stop)")
+            t0 = time.monotonic()
+            try:
+                wait_until = t0 + args.wait_subscribers
+                while not getattr(source, "has_subscribers", True) and time.monotonic() < wait_until:
+                    if stop.wait(0.01):
+                        break
+                source.start()
+                why = _wait_loop(source, args, stop, console)
+            finally:
+                source.stop()
+                time.sleep(0.2)  # let the last samples leave before the session closes
+            elapsed = time.monotonic() - t0
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+    if console.is_terminal:
+        console.print()
+    print(f"published {source.published} {source.what} in {elapsed:.1f} s ({why})")
+    if source.error is not None:
+        console.print(f"[red]flightkit: error: {source.error}[/]")
+        return 1
+    return 0
+
+
+def _run_mocap(args: argparse.Namespace, lab: Any, console: Any) -> int:
+    import asyncio
+    import signal
+
+    from capture.sources.mocap import MocapBridge, open_bridge_source
+    from flightkit.bus.keys import Keys
+    from flightkit.bus.session import open_session
+    from flightkit.clock import WallClock
+
+    clock = WallClock()
+
+    async def bridge_main() -> tuple[int, str]:
+        loop = asyncio.get_running_loop()
+        task = asyncio.current_task()
+        why = "end of source"
+
+        def on_signal() -> None:
+            nonlocal why
+            why = "signal"
+            if task is not None:
+                task.cancel()
+
+        for s in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(s, on_signal)
+        try:
+            with open_session(_publish_bus_config(args, lab)) as session:
+                async with open_bridge_source(lab, clock) as source:
+                    bridge = MocapBridge(session, Keys(lab.vehicle.namespace), source)
+                    console.print(f"bridging mocap {lab.mocap.system_type} to {lab.vehicle.namespace}/mocap/*/pose")
+                    try:
+                        await bridge.run(args.duration, clock)
+                        if args.duration:
+                            why = "duration"
+                    except asyncio.CancelledError:
+                        pass
+                    finally:
+                        bridge.close()
+                    return bridge.published, why
+        finally:
+            for s in (signal.SIGINT, signal.SIGTERM):
+                loop.remove_signal_handler(s)
+
+    published, why = asyncio.run(bridge_main())
+    print(f"published {published} poses ({why})")
     return 0

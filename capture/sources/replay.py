@@ -1,0 +1,384 @@
+"""Replay a recording or a dataset folder on the bus, at recorded speed or faster.
+
+Two sources, both paced on the injected clock (``speed`` times the recorded rate on top of
+it; ``speed=inf`` publishes as fast as the bus takes it):
+
+* :class:`McapReplayPublisher` -- an MCAP recording: every message is republished **as
+  recorded** (the raw CDR payload, never decoded) with its channel's ROS 2 type on its
+  original key (the topic without the leading ``/``, optionally under ``key_prefix``),
+  stamped with its recorded ``publish_time``, in ``log_time`` order. A recorder on the
+  other side writes byte-identical payloads.
+* :class:`DatasetReplayPublisher` -- a dataset folder (TUM RGB-D, EuRoC, KITTI, 7-Scenes, a
+  video; anything :func:`flightkit.datasets.open_sequence` reads): images are decoded and
+  published like a camera driver would (``color`` bgr8, or ``left``/``right`` mono8 for
+  stereo, ``gray`` for mono; ``depth`` 16UC1 mm; camera_info from the dataset's
+  calibration), and the ground truth as ``geometry_msgs/PoseStamped`` on
+  ``<ns>/mocap/<gt_body>/pose`` (frame ``mocap``: the dataset's world frame), each at its
+  own dataset stamp. A TUM folder exported by flightkit (with ``camera.yaml``) is read with
+  its own calibration, so export -> replay -> record -> export round-trips.
+
+Replay publishers are reliable and block rather than drop (offline data has no deadline):
+a slow recorder slows the replay down instead of losing frames.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import zenoh
+
+from capture.sources._runner import SourceThread
+from capture.sources.realsense import depth_to_mm
+from capture.streams import CameraModel, CameraStream, PosePublisher, has_subscribers, optical_frame_id
+from flightkit.bus.keys import Keys
+from flightkit.bus.msgs import Image
+from flightkit.bus.pubsub import BusPublisher
+from flightkit.clock import Clock
+from flightkit.errors import BusError, CaptureError, DatasetError
+
+__all__ = ["DatasetReplayPublisher", "McapReplayPublisher", "open_replay"]
+
+logger = logging.getLogger(__name__)
+
+
+def _check_speed(speed: float) -> float:
+    if not speed > 0:
+        raise CaptureError(f"replay speed {speed} must be positive (1 = as recorded, 10 = ten times faster)")
+    return float(speed)
+
+
+class _Pacer:
+    """Maps recorded stamps to clock deadlines: ``t0 + (stamp - first) / speed``."""
+
+    def __init__(self, owner: SourceThread, speed: float) -> None:
+        self._owner = owner
+        self._speed = speed
+        self._first: int | None = None
+        self._t0 = 0.0
+
+    def wait(self, stamp_ns: int) -> bool:
+        if self._first is None:
+            self._first = stamp_ns
+            self._t0 = self._owner.clock.monotonic_s()
+            return not self._owner.stopping
+        if math.isinf(self._speed):
+            return not self._owner.stopping
+        return self._owner._sleep_until(self._t0 + (stamp_ns - self._first) * 1e-9 / self._speed)  # noqa: SLF001
+
+
+# --------------------------------------------------------------------------- MCAP
+
+
+class McapReplayPublisher(SourceThread):
+    """Republish an MCAP recording's raw payloads on their original keys.
+
+    Args:
+        session: an open Zenoh session.
+        path: the ``.mcap`` file (complete; recover a crashed one first).
+        clock: paces the replay.
+        speed: recorded seconds per clock second (``inf``: no pacing).
+        topics: only these topics (as recorded, with or without the leading ``/``).
+        key_prefix: publish under ``<prefix>/<topic>`` (e.g. ``replay``) to keep clear of live streams.
+
+    Raises:
+        CaptureError: the file is unreadable or has no CDR channels.
+    """
+
+    thread_name = "mcap-replay"
+    what = "messages"
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        path: str | os.PathLike[str],
+        clock: Clock,
+        *,
+        speed: float = 1.0,
+        topics: Sequence[str] | None = None,
+        key_prefix: str = "",
+    ) -> None:
+        from mcap.reader import make_reader
+
+        super().__init__(clock)
+        self.path = Path(path)
+        self.speed = _check_speed(speed)
+        self.thread_name = f"mcap-replay {self.path.name}"
+        try:
+            with self.path.open("rb") as fh:
+                summary = make_reader(fh).get_summary()
+        except OSError as exc:
+            raise CaptureError(f"cannot open {self.path}: {exc.strerror}; check the path") from exc
+        except Exception as exc:
+            raise CaptureError(
+                f"{self.path} is not a readable MCAP file ({exc}); if it crashed, run "
+                f"'flightkit capture recover {self.path} -o FIXED.mcap' first"
+            ) from exc
+        if summary is None:
+            raise CaptureError(
+                f"{self.path} has no summary; run 'flightkit capture recover {self.path} -o FIXED.mcap'"
+            )
+        wanted = {t.lstrip("/") for t in topics} if topics else None
+        prefix = key_prefix.strip("/")
+        self._pubs: dict[int, BusPublisher] = {}
+        self.key_of: dict[str, str] = {}
+        self.skipped: list[str] = []
+        for cid, ch in sorted(summary.channels.items()):
+            topic = ch.topic.lstrip("/")
+            if wanted is not None and topic not in wanted:
+                continue
+            schema = summary.schemas.get(ch.schema_id)
+            if ch.message_encoding != "cdr" or schema is None:
+                self.skipped.append(ch.topic)
+                logger.warning(
+                    "not replaying %s: %s payloads are not ROS 2 CDR", ch.topic, ch.message_encoding
+                )
+                continue
+            key = f"{prefix}/{topic}" if prefix else topic
+            try:
+                self._pubs[cid] = BusPublisher(
+                    session, key, schema.name, reliable=True, drop_when_congested=False
+                )
+            except BusError as exc:
+                self.skipped.append(ch.topic)
+                logger.warning("not replaying %s: %s", ch.topic, exc)
+                continue
+            self.key_of[ch.topic] = key
+        if not self._pubs:
+            raise CaptureError(
+                f"{self.path} has no CDR channel to replay"
+                + (f" among topics {sorted(wanted)}" if wanted else "")
+                + "; check the recording with 'flightkit capture info'"
+            )
+        stats = summary.statistics
+        self.total = (
+            sum(n for c, n in stats.channel_message_counts.items() if c in self._pubs)
+            if stats is not None
+            else 0
+        )
+
+    @property
+    def keys(self) -> list[str]:
+        return sorted(self.key_of.values())
+
+    @property
+    def has_subscribers(self) -> bool:
+        """Whether every replayed key has a subscriber right now."""
+        return all(has_subscribers(p) for p in self._pubs.values())
+
+    def _run_loop(self) -> None:
+        from mcap.reader import make_reader
+
+        pacer = _Pacer(self, self.speed)
+        pubs = self._pubs
+        logger.info("replaying %s (%d messages) at %gx", self.path, self.total, self.speed)
+        with self.path.open("rb") as fh:
+            reader = make_reader(fh)
+            for _schema, channel, message in reader.iter_messages(log_time_order=True):
+                pub = pubs.get(channel.id)
+                if pub is None:
+                    continue
+                if not pacer.wait(message.log_time):
+                    return
+                pub.put(message.data, message.publish_time)
+                self._count()
+        logger.info("replay of %s finished: %d messages", self.path, self.published)
+
+    def _close_outputs(self) -> None:
+        for pub in self._pubs.values():
+            pub.close()
+
+
+# --------------------------------------------------------------------------- datasets
+
+
+def _model(intr: Any, baseline_tx: float = 0.0) -> CameraModel:
+    return CameraModel(
+        intr.width, intr.height, intr.fx, intr.fy, intr.cx, intr.cy, tuple(intr.dist), baseline_tx
+    )
+
+
+def _open_dataset(path: Path, options: dict[str, Any]) -> Any:
+    from flightkit.datasets import open_sequence
+    from flightkit.datasets.tum import is_tum_folder
+
+    if (
+        path.is_dir()
+        and is_tum_folder(path)
+        and (path / "camera.yaml").is_file()
+        and "intrinsics" not in options
+    ):
+        from capture.export import read_tum_calibration
+
+        options = {**options, "intrinsics": read_tum_calibration(path)}
+    try:
+        return open_sequence(path, **options)
+    except DatasetError as exc:
+        raise CaptureError(str(exc)) from exc
+
+
+class DatasetReplayPublisher(SourceThread):
+    """Publish a dataset folder (or video) as camera streams plus ground truth.
+
+    Args:
+        session: an open Zenoh session.
+        keys: the namespace to publish under.
+        path: the dataset folder or file (anything :func:`~flightkit.datasets.open_sequence` opens).
+        clock: paces the replay.
+        speed: dataset seconds per clock second (``inf``: no pacing).
+        gt_body: the body name of the ground truth on ``<ns>/mocap/<gt_body>/pose``.
+        groundtruth: publish the ground truth (when the dataset has one).
+        options: passed to ``open_sequence`` (e.g. ``rectify=False`` for EuRoC).
+
+    Raises:
+        CaptureError: the dataset cannot be opened or is empty.
+    """
+
+    thread_name = "dataset-replay"
+    what = "frames"
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        keys: Keys,
+        path: str | os.PathLike[str],
+        clock: Clock,
+        *,
+        speed: float = 1.0,
+        gt_body: str = "groundtruth",
+        groundtruth: bool = True,
+        **options: Any,
+    ) -> None:
+        super().__init__(clock)
+        self.path = Path(path)
+        self.speed = _check_speed(speed)
+        self.seq = _open_dataset(self.path, dict(options))
+        self.thread_name = f"dataset-replay {self.seq.name}"
+        if len(self.seq) == 0:
+            raise CaptureError(f"dataset {self.path} has no frames to replay")
+        first = next(iter(self.seq.frames(0, 1)))
+        intr = self.seq.intrinsics
+        stereo = first.right_gray is not None and self.seq.baseline_m is not None
+        self.main_name = "color" if first.color_bgr is not None else ("left" if stereo else "gray")
+        self.main_encoding = "bgr8" if first.color_bgr is not None else "mono8"
+        main_model = _model(intr)
+        self.main = CameraStream(session, keys, self.main_name, main_model, self.main_encoding)
+        self.right: CameraStream | None = None
+        if stereo:
+            right_model = _model(intr, -intr.fx * float(self.seq.baseline_m))
+            self.right = CameraStream(session, keys, "right", right_model, "mono8")
+        self.depth: CameraStream | None = None
+        if first.depth_raw is not None and self.seq.depth_intrinsics is not None:
+            aligned = self.seq.depth_intrinsics == intr
+            self.depth = CameraStream(
+                session,
+                keys,
+                "depth",
+                _model(self.seq.depth_intrinsics),
+                "16UC1",
+                frame_id=optical_frame_id(keys, self.main_name) if aligned else None,
+            )
+        for stream in (self.main, self.right, self.depth):
+            if stream is not None:
+                _make_reliable(session, stream)
+        self.gt = self.seq.groundtruth() if groundtruth and self.seq.has_groundtruth() else None
+        self.pose: PosePublisher | None = (
+            PosePublisher(session, keys, gt_body) if self.gt is not None else None
+        )
+        self.poses_published = 0
+        self._depth_mm: npt.NDArray[np.uint16] | None = None
+
+    @property
+    def keys(self) -> list[str]:
+        out = [
+            k for s in (self.main, self.right, self.depth) if s is not None for k in (s.image_key, s.info_key)
+        ]
+        if self.pose is not None:
+            out.append(self.pose.key)
+        return out
+
+    @property
+    def has_subscribers(self) -> bool:
+        """Whether every published stream has a subscriber right now."""
+        ok = all(s.has_subscribers for s in (self.main, self.right, self.depth) if s is not None)
+        return ok and (self.pose is None or self.pose.has_subscribers)
+
+    def _events(self) -> Iterator[tuple[int, int, Any]]:
+        """(stamp, kind, item) in stamp order: kind 0 = ground-truth pose index, 1 = frame."""
+        gt_stamps = self.gt.stamps_ns if self.gt is not None else np.zeros(0, np.int64)
+        g = 0
+        for frame in self.seq.frames():
+            while g < gt_stamps.size and gt_stamps[g] <= frame.stamp_ns:
+                yield int(gt_stamps[g]), 0, g
+                g += 1
+            yield frame.stamp_ns, 1, frame
+        while g < gt_stamps.size:
+            yield int(gt_stamps[g]), 0, g
+            g += 1
+
+    def _publish_frame(self, frame: Any) -> None:
+        stamp = frame.stamp_ns
+        self.main.publish(stamp, frame.color_bgr if self.main_encoding == "bgr8" else frame.gray)
+        if self.right is not None and frame.right_gray is not None:
+            self.right.publish(stamp, frame.right_gray)
+        if self.depth is not None and frame.depth_raw is not None:
+            self._depth_mm = depth_to_mm(frame.depth_raw, frame.depth_scale_m, self._depth_mm)
+            self.depth.publish(stamp, self._depth_mm)
+
+    def _run_loop(self) -> None:
+        pacer = _Pacer(self, self.speed)
+        logger.info(
+            "replaying %s (%s, %d frames%s) at %gx",
+            self.path,
+            self.seq.kind,
+            len(self.seq),
+            f", {len(self.gt)} ground-truth poses" if self.gt is not None else "",
+            self.speed,
+        )
+        for stamp, kind, item in self._events():
+            if not pacer.wait(stamp):
+                return
+            if kind == 0:
+                assert self.gt is not None and self.pose is not None
+                self.pose.publish(stamp, self.gt.transform(item))
+                self.poses_published += 1
+            else:
+                self._publish_frame(item)
+                self._count()
+        logger.info("replay of %s finished: %d frames", self.path, self.published)
+
+    def _close_outputs(self) -> None:
+        for s in (self.main, self.right, self.depth, self.pose):
+            if s is not None:
+                s.close()
+
+
+def _make_reliable(session: zenoh.Session, stream: CameraStream) -> None:
+    """Swap a camera stream's best-effort image publisher for a reliable, blocking one (replay
+    must not drop frames; it has no deadline to keep)."""
+    stream._image.close()  # noqa: SLF001
+    stream._image = BusPublisher(  # noqa: SLF001
+        session, stream.image_key, Image, reliable=True, drop_when_congested=False
+    )
+
+
+def open_replay(
+    session: zenoh.Session,
+    keys: Keys,
+    path: str | os.PathLike[str],
+    clock: Clock,
+    *,
+    speed: float = 1.0,
+    **options: Any,
+) -> McapReplayPublisher | DatasetReplayPublisher:
+    """An MCAP file -> :class:`McapReplayPublisher`; anything else -> :class:`DatasetReplayPublisher`."""
+    p = Path(path)
+    if p.is_file() and p.suffix.lower() == ".mcap":
+        return McapReplayPublisher(session, p, clock, speed=speed, **options)
+    return DatasetReplayPublisher(session, keys, p, clock, speed=speed, **options)
