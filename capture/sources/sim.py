@@ -220,6 +220,7 @@ class SimCameraPublisher:
 
     def _run(self) -> None:
         period = 1.0 / self.rate_hz
+        lockstep = not math.isfinite(self._clock.speed)  # lock-step time waits for us: never skip
         t0 = self._clock.monotonic_s()
         n = 0  # index of the next due frame; due times are t0 + n * period (no drift from sums)
         try:
@@ -231,7 +232,7 @@ class SimCameraPublisher:
                 self.publish_at(stamp_ns, T_world_body)
                 n += 1
                 behind = self._clock.monotonic_s() - (t0 + n * period)
-                if behind > period:
+                if behind > period and not lockstep:
                     skip = int(behind / period)
                     if self.frames_skipped == 0:
                         logger.warning(
