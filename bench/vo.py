@@ -2,7 +2,9 @@
 
 For every real sequence in ``../shared/data`` (KITTI 06 stereo, 7-Scenes RGB-D, the two
 TUM fr1/xyz pairs, EuRoC V1_01 at rest) and every method that the sequence's sensors allow,
-at 320x240 and 640x480, prints:
+and for the synthetic sequences of the three lab patterns (``sim_circle``, ``sim_rectangle``,
+``sim_lawnmower``: the simulated camera flown along them with exact ground truth, rendered
+natively at each size before timing, see ``bench/_synthetic.py``), at 320x240 and 640x480, prints:
 
 * frames/s of processing (images already decoded and resized; best of ``--repeat`` runs),
   from wall time ("fps") and from the thread's CPU time ("cpu fps": what one dedicated
@@ -17,7 +19,7 @@ at 320x240 and 640x480, prints:
 The process is pinned to one CPU and OpenCV/BLAS to one thread.
 
 Run: .venv/bin/python bench/vo.py [--sizes 320x240,640x480] [--repeat 2] [--no-baseline]
-     [--ba 4] [--json out.json]
+     [--ba 4] [--only kitti06,sim_circle] [--no-synthetic] [--json out.json]
 """
 
 from __future__ import annotations
@@ -31,12 +33,17 @@ os.environ.setdefault("MKL_NUM_THREADS", "1")
 import argparse  # noqa: E402
 import json  # noqa: E402
 import math  # noqa: E402
+import sys  # noqa: E402
 from dataclasses import replace  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # `bench._synthetic` when run as a script
+
+from bench._synthetic import METHODS as SYNTHETIC_METHODS  # noqa: E402
+from bench._synthetic import SYNTHETIC, prerendered  # noqa: E402
 from estimation.baseline import run_baseline  # noqa: E402
 from estimation.evaluation import Alignment, ape, lab_errors, rpe  # noqa: E402
 from estimation.pipeline import Method, VoOptions, VoResult, run_vo  # noqa: E402
@@ -93,6 +100,7 @@ def main() -> int:
     ap.add_argument("--no-baseline", action="store_true")
     ap.add_argument("--ba", type=int, default=0, help="also run with local BA over N keyframes")
     ap.add_argument("--only", help="comma-separated sequence keys")
+    ap.add_argument("--no-synthetic", action="store_true", help="skip the synthetic lab-pattern sequences")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
 
@@ -101,7 +109,7 @@ def main() -> int:
         cpus = sorted(os.sched_getaffinity(0))
         os.sched_setaffinity(0, {cpus[-1]})
     sizes = [tuple(int(v) for v in s.split("x")) for s in args.sizes.split(",")]
-    keys = args.only.split(",") if args.only else list(SEQUENCES)
+    keys = args.only.split(",") if args.only else list(SEQUENCES) + ([] if args.no_synthetic else list(SYNTHETIC))
     rows: list[dict[str, object]] = []
     print(f"data: {DATA}; OpenCV {cv2.__version__}, threads {cv2.getNumThreads()}, one CPU")
     hdr = (
@@ -109,11 +117,24 @@ def main() -> int:
         f"{'RPE deg':>8} {'rel m':>8} {'rel deg':>8} {'abs m':>8} {'abs deg':>8}  stages ms"
     )
     for key in keys:
-        folder, methods = SEQUENCES[key]
-        seq = open_sequence(DATA / folder)
-        print(f"\n== {key}: {seq.name}, {len(seq)} frames, {seq.intrinsics.width}x{seq.intrinsics.height}")
-        print(hdr)
+        if key in SYNTHETIC:
+            methods = SYNTHETIC_METHODS
+            seq = None
+        else:
+            folder, methods = SEQUENCES[key]
+            seq = open_sequence(DATA / folder)
+            print(f"\n== {key}: {seq.name}, {len(seq)} frames, {seq.intrinsics.width}x{seq.intrinsics.height}")
+            print(hdr)
         for size in sizes:
+            if key in SYNTHETIC:
+                # Rendered natively at this size, every frame in memory before the timed runs.
+                seq = prerendered(SYNTHETIC[key], size)
+                print(
+                    f"\n== {key} at {size[0]}x{size[1]}: {len(seq)} frames at 15 Hz, rendered in "
+                    f"{seq.render_s:.1f} s ({1e3 * seq.render_s / len(seq):.0f} ms per frame with stereo)"
+                )
+                print(hdr)
+            assert seq is not None
             runs: list[tuple[str, VoResult, VoOptions | None]] = []
             for label in methods:
                 # "flow@stereo": the flow method with per-point stereo depth instead of the altitude.
