@@ -168,13 +168,21 @@ def read_tum_calibration(folder: str | Path) -> CameraIntrinsics:
         raise CaptureError(f"{path} does not exist; export the folder with 'flightkit export --format tum'")
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     try:
-        vals = {k: fs.getNode(f"Camera.{k}") for k in ("fx", "fy", "cx", "cy", "width", "height", "k1", "k2", "p1", "p2", "k3")}
+        vals = {
+            k: fs.getNode(f"Camera.{k}")
+            for k in ("fx", "fy", "cx", "cy", "width", "height", "k1", "k2", "p1", "p2", "k3")
+        }
         if any(vals[k].empty() for k in ("fx", "fy", "cx", "cy", "width", "height")):
             raise CaptureError(f"{path} lacks Camera.fx/fy/cx/cy/width/height; re-export the folder")
         dist = tuple(vals[k].real() for k in ("k1", "k2", "p1", "p2", "k3") if not vals[k].empty())
         return CameraIntrinsics(
-            vals["fx"].real(), vals["fy"].real(), vals["cx"].real(), vals["cy"].real(),
-            int(vals["width"].real()), int(vals["height"].real()), dist if any(dist) else (),
+            vals["fx"].real(),
+            vals["fy"].real(),
+            vals["cx"].real(),
+            vals["cy"].real(),
+            int(vals["width"].real()),
+            int(vals["height"].real()),
+            dist if any(dist) else (),
         )
     finally:
         fs.release()
@@ -272,12 +280,21 @@ def _plan(src: Path, fmt: str, camera: str | None, mocap_body: str | None) -> _P
         stamps = np.array([p[0] for p in poses], np.int64)
         keep = np.concatenate([[True], np.diff(stamps) > 0])  # drop duplicate stamps
         traj = Trajectory(
-            stamps[keep], np.array([p[1] for p in poses])[keep],
-            quat_xyzw_to_wxyz(np.array([p[2] for p in poses]))[keep], f"mocap {mocap_body}",
+            stamps[keep],
+            np.array([p[1] for p in poses])[keep],
+            quat_xyzw_to_wxyz(np.array([p[2] for p in poses]))[keep],
+            f"mocap {mocap_body}",
         )
     return _Plan(
-        camera, images[camera], images.get("depth") if camera != "depth" else None,
-        images.get("right") if camera != "right" else None, mocap_topic, infos, T_body_camera, traj, counts,
+        camera,
+        images[camera],
+        images.get("depth") if camera != "depth" else None,
+        images.get("right") if camera != "right" else None,
+        mocap_topic,
+        infos,
+        T_body_camera,
+        traj,
+        counts,
     )
 
 
@@ -394,8 +411,16 @@ def _iter_images(src: Path, topics: list[str]) -> Any:
 
 
 def _export_tum(
-    src: Path, out: Path, plan: _Plan, topics: list[str], body_traj: Trajectory | None, T_bc: Transform,  # noqa: N803
-    max_diff_ns: int, report: ExportReport, total: int, progress: ProgressFn | None,
+    src: Path,
+    out: Path,
+    plan: _Plan,
+    topics: list[str],
+    body_traj: Trajectory | None,
+    T_bc: Transform,  # noqa: N803
+    max_diff_ns: int,
+    report: ExportReport,
+    total: int,
+    progress: ProgressFn | None,
 ) -> None:
     (out / "rgb").mkdir()
     if plan.depth_topic:
@@ -432,13 +457,18 @@ def _export_tum(
         ia, ib = tum_associate(rgb_ns, np.array([t for t, _ in depth], np.int64), max_diff_ns)
         report.associated_depth = int(ia.size)
         (out / "associations.txt").write_text(
-            "".join(f"{_stamp_text(rgb[i][0])} {rgb[i][1]} {_stamp_text(depth[j][0])} {depth[j][1]}\n"
-                    for i, j in zip(ia, ib, strict=True))
+            "".join(
+                f"{_stamp_text(rgb[i][0])} {rgb[i][1]} {_stamp_text(depth[j][0])} {depth[j][1]}\n"
+                for i, j in zip(ia, ib, strict=True)
+            )
         )
     if body_traj is not None:
         cam = body_traj.right_multiplied(T_bc).renamed("groundtruth")
-        write_tum(out / "groundtruth.txt", cam, header="ground truth: colour camera (OpenCV) in the mocap frame\n"
-                  "# timestamp tx ty tz qx qy qz qw")
+        write_tum(
+            out / "groundtruth.txt",
+            cam,
+            header="ground truth: colour camera (OpenCV) in the mocap frame\n# timestamp tx ty tz qx qy qz qw",
+        )
         report.groundtruth_poses = len(cam)
         ia, ib = tum_associate(rgb_ns, cam.stamps_ns, max_diff_ns)
         report.associated_groundtruth = int(ia.size)
@@ -446,7 +476,8 @@ def _export_tum(
         (out / "associations_gt.txt").write_text(
             "".join(
                 f"{_stamp_text(rgb[i][0])} {rgb[i][1]} {_stamp_text(int(cam.stamps_ns[j]))} "
-                + " ".join(f"{v:.9f}" for v in (*cam.positions[j], *q[j])) + "\n"
+                + " ".join(f"{v:.9f}" for v in (*cam.positions[j], *q[j]))
+                + "\n"
                 for i, j in zip(ia, ib, strict=True)
             )
         )
@@ -457,13 +488,23 @@ def _write_tum_yaml(path: Path, info: CameraInfo, right: CameraInfo | None) -> N
     k = info.k
     d = list(info.d) + [0.0] * (5 - len(info.d))
     lines = [
-        "%YAML:1.0", "---", "# Camera calibration (pinhole, OpenCV plumb_bob distortion), exported by flightkit",
+        "%YAML:1.0",
+        "---",
+        "# Camera calibration (pinhole, OpenCV plumb_bob distortion), exported by flightkit",
         'Camera.type: "PinHole"',
-        f"Camera.fx: {k[0]!r}", f"Camera.fy: {k[4]!r}", f"Camera.cx: {k[2]!r}", f"Camera.cy: {k[5]!r}",
-        f"Camera.k1: {d[0]!r}", f"Camera.k2: {d[1]!r}", f"Camera.p1: {d[2]!r}", f"Camera.p2: {d[3]!r}",
+        f"Camera.fx: {k[0]!r}",
+        f"Camera.fy: {k[4]!r}",
+        f"Camera.cx: {k[2]!r}",
+        f"Camera.cy: {k[5]!r}",
+        f"Camera.k1: {d[0]!r}",
+        f"Camera.k2: {d[1]!r}",
+        f"Camera.p1: {d[2]!r}",
+        f"Camera.p2: {d[3]!r}",
         f"Camera.k3: {d[4]!r}",
-        f"Camera.width: {info.width}", f"Camera.height: {info.height}",
-        "Camera.RGB: 1", f"DepthMapFactor: {TUM_DEPTH_FACTOR!r}",
+        f"Camera.width: {info.width}",
+        f"Camera.height: {info.height}",
+        "Camera.RGB: 1",
+        f"DepthMapFactor: {TUM_DEPTH_FACTOR!r}",
     ]
     if right is not None and right.p[0]:
         lines.append(f"Camera.bf: {-right.p[3]!r}")
@@ -493,8 +534,16 @@ def _sensor_yaml(info: CameraInfo, T_body_camera: Transform, rate_hz: float, com
 
 
 def _export_euroc(
-    src: Path, out: Path, plan: _Plan, topics: list[str], body_traj: Trajectory | None, T_bc: Transform,  # noqa: N803
-    max_diff_ns: int, report: ExportReport, total: int, progress: ProgressFn | None,
+    src: Path,
+    out: Path,
+    plan: _Plan,
+    topics: list[str],
+    body_traj: Trajectory | None,
+    T_bc: Transform,  # noqa: N803
+    max_diff_ns: int,
+    report: ExportReport,
+    total: int,
+    progress: ProgressFn | None,
 ) -> None:
     mav0 = out / "mav0"
     cams = {plan.main_topic: mav0 / "cam0"}
@@ -516,7 +565,9 @@ def _export_euroc(
     for topic, d in cams.items():
         stamps = sorted(rows[topic])
         (d / "data.csv").write_text("#timestamp [ns],filename\n" + "".join(f"{t},{t}.png\n" for t in stamps))
-        rate = (len(stamps) - 1) / ((stamps[-1] - stamps[0]) * 1e-9) if len(stamps) > 1 and stamps[-1] > stamps[0] else 0.0
+        rate = (
+            (len(stamps) - 1) / ((stamps[-1] - stamps[0]) * 1e-9) if len(stamps) > 1 and stamps[-1] > stamps[0] else 0.0
+        )
         if topic == plan.main_topic:
             T_bs = T_bc  # noqa: N806
             info = plan.infos[plan.main]
@@ -526,7 +577,9 @@ def _export_euroc(
             baseline = -info.p[3] / info.p[0] if info.p[0] else 0.0
             T_bs = T_bc @ Transform(translation=np.array([baseline, 0.0, 0.0]))  # noqa: N806
             report.right_images = len(stamps)
-        (d / "sensor.yaml").write_text(_sensor_yaml(info, T_bs, rate, f"{d.name} exported by flightkit from {src.name}"))
+        (d / "sensor.yaml").write_text(
+            _sensor_yaml(info, T_bs, rate, f"{d.name} exported by flightkit from {src.name}")
+        )
     (mav0 / "body.yaml").write_text("# Body frame: the mocap rigid body (FLU)\nsensor_type: body\n")
     if body_traj is not None:
         gt = mav0 / "state_groundtruth_estimate0"

@@ -64,7 +64,9 @@ def compression_from_name(name: str) -> Compression:
 
 def transform_metadata(T: Transform) -> str:  # noqa: N803
     """A transform as JSON text for metadata: ``{"translation_m": [...], "quat_xyzw": [...]}``."""
-    return json.dumps({"translation_m": [float(v) for v in T.translation], "quat_xyzw": [float(v) for v in T.quat_xyzw]})
+    return json.dumps(
+        {"translation_m": [float(v) for v in T.translation], "quat_xyzw": [float(v) for v in T.quat_xyzw]}
+    )
 
 
 def _plain(value: Any) -> Any:
@@ -107,9 +109,15 @@ def recording_metadata(lab_cfg: LabConfig | None) -> dict[str, dict[str, str]]:
             "world_frame": "enu",
         },
         "calibration": {
-            "width": str(cam.width_px), "height": str(cam.height_px), "fx": repr(fx), "fy": repr(fy),
-            "cx": repr(cx), "cy": repr(cy), "stereo_baseline_m": repr(cam.stereo_baseline_m),
-            "rate_hz": repr(cam.rate_hz), "source": "config",
+            "width": str(cam.width_px),
+            "height": str(cam.height_px),
+            "fx": repr(fx),
+            "fy": repr(fy),
+            "cx": repr(cx),
+            "cy": repr(cy),
+            "stereo_baseline_m": repr(cam.stereo_baseline_m),
+            "rate_hz": repr(cam.rate_hz),
+            "source": "config",
         },
     }
 
@@ -159,9 +167,16 @@ class BusRecorder:
         self._seen_info: set[str] = set()
         self._lock = threading.Lock()
         self.recorder = Recorder(
-            path, self._schema_for, compression=compression, allow_overwrite=allow_overwrite,
-            metadata=metadata, split_size_mb=split_size_mb, split_duration_s=split_duration_s,
-            chunk_size=chunk_size, chunk_max_age_s=chunk_max_age_s, queue_limit_bytes=queue_limit_bytes,
+            path,
+            self._schema_for,
+            compression=compression,
+            allow_overwrite=allow_overwrite,
+            metadata=metadata,
+            split_size_mb=split_size_mb,
+            split_duration_s=split_duration_s,
+            chunk_size=chunk_size,
+            chunk_max_age_s=chunk_max_age_s,
+            queue_limit_bytes=queue_limit_bytes,
             on_flush=on_flush,
         )
         self.started_ns = time_ns()
@@ -192,8 +207,15 @@ class BusRecorder:
                 return
         now = self._time_ns()
         self.recorder.offer(
-            StreamSample(s.key, s.msgtype, s.payload, max(s.seq, 0), s.stamp_ns or now, now,
-                         reliable=not is_best_effort(s.msgtype))
+            StreamSample(
+                s.key,
+                s.msgtype,
+                s.payload,
+                max(s.seq, 0),
+                s.stamp_ns or now,
+                now,
+                reliable=not is_best_effort(s.msgtype),
+            )
         )
         if s.msgtype == CameraInfo.TYPE and s.key not in self._seen_info:
             self._note_calibration(s)
@@ -211,10 +233,15 @@ class BusRecorder:
         self.recorder.add_metadata(
             f"calibration.{camera}",
             {
-                "topic": s.key, "width": str(info.width), "height": str(info.height),
-                "distortion_model": info.distortion_model, "d": " ".join(repr(v) for v in info.d),
-                "k": " ".join(repr(v) for v in info.k), "p": " ".join(repr(v) for v in info.p),
-                "frame_id": info.header.frame_id, "source": "camera_info",
+                "topic": s.key,
+                "width": str(info.width),
+                "height": str(info.height),
+                "distortion_model": info.distortion_model,
+                "d": " ".join(repr(v) for v in info.d),
+                "k": " ".join(repr(v) for v in info.k),
+                "p": " ".join(repr(v) for v in info.p),
+                "frame_id": info.header.frame_id,
+                "source": "camera_info",
             },
         )
 
@@ -315,8 +342,13 @@ def start_recording(
         owned = session = open_session(bus_cfg or (lab_cfg.bus if lab_cfg is not None else None))
     try:
         rec = _OwnedSessionRecorder(
-            session, path, topics, compression=compression or cap.compression,
-            allow_overwrite=allow_overwrite, metadata=meta, **options,
+            session,
+            path,
+            topics,
+            compression=compression or cap.compression,
+            allow_overwrite=allow_overwrite,
+            metadata=meta,
+            **options,
         )
     except BaseException:
         if owned is not None:

@@ -245,7 +245,9 @@ class CameraConfig:
     stereo_baseline_m: float = setting(0.05, min=0.001, max=2.0, help="stereo baseline")
     depth_max_m: float = setting(10.0, min=0.1, max=65.0, help="depth beyond this is reported invalid (0)")
     T_body_camera: TransformConfig = setting(
-        default_factory=lambda: TransformConfig(translation_m=(0.08, 0.0, -0.02), euler_seq="xz", euler_deg=(135.0, 90.0)),
+        default_factory=lambda: TransformConfig(
+            translation_m=(0.08, 0.0, -0.02), euler_seq="xz", euler_deg=(135.0, 90.0)
+        ),
         help="camera pose in the body frame",
     )
 
@@ -367,8 +369,11 @@ def _check_range(value: float, meta: Mapping[str, Any], path: str, key: str) -> 
         hi_s = "inf" if hi is None else f"{hi:g}"
         help_ = meta.get("help", "")
         raise ConfigError(
-            path, key, f"{value!r} is out of range [{lo_s}, {hi_s}]",
-            f"give a value from {lo_s} to {hi_s}" + (f" ({help_})" if help_ else ""), value,
+            path,
+            key,
+            f"{value!r} is out of range [{lo_s}, {hi_s}]",
+            f"give a value from {lo_s} to {hi_s}" + (f" ({help_})" if help_ else ""),
+            value,
         )
 
 

@@ -12,8 +12,6 @@ duration, loop rate and faults; ``to_dict()`` gives the JSON summary.
 
 from __future__ import annotations
 
-from flightkit.errors import FlightkitError
-
 import io
 import json
 import math
@@ -24,6 +22,7 @@ from typing import Any, TextIO
 import numpy as np
 import numpy.typing as npt
 
+from flightkit.errors import FlightkitError
 from trajectories.supervisor import Fault
 
 __all__ = ["COLUMNS", "FlightLog", "FlightLogData", "FlightSummary", "PhaseStats", "read_flight_log"]

@@ -214,8 +214,8 @@ def _run_vo(args: argparse.Namespace, cfg: Any, recording: Path, out: Path) -> N
 
     from estimation.evaluation import evaluate
     from estimation.pipeline import run_vo
-    from flightkit.cli.vo import _print_report
     from estimation.plots import plot_evaluation
+    from flightkit.cli.vo import _print_report
     from flightkit.datasets import open_sequence, write_tum
 
     seq = open_sequence(

@@ -19,10 +19,14 @@ def register(sub: Any) -> None:
     split = p.add_mutually_exclusive_group()
     split.add_argument("--split-size", type=float, metavar="MB", help="start a new file every MB megabytes")
     split.add_argument("--split-duration", type=float, metavar="S", help="start a new file every S seconds")
-    p.add_argument("--compression", choices=("zstd", "lz4", "none"), help="chunk compression (default from config: zstd)")
+    p.add_argument(
+        "--compression", choices=("zstd", "lz4", "none"), help="chunk compression (default from config: zstd)"
+    )
     p.add_argument("--force", action="store_true", help="overwrite existing output")
     p.add_argument("--config", metavar="LAB.toml", help="lab config (namespace, bus endpoints, metadata)")
-    p.add_argument("--connect", nargs="+", metavar="ENDPOINT", help="Zenoh endpoints to connect to, e.g. tcp/10.0.0.2:7447")
+    p.add_argument(
+        "--connect", nargs="+", metavar="ENDPOINT", help="Zenoh endpoints to connect to, e.g. tcp/10.0.0.2:7447"
+    )
     p.add_argument("--listen", nargs="+", metavar="ENDPOINT", help="Zenoh endpoints to listen on")
     p.add_argument("--quiet", action="store_true", help="no live display (the final report is still printed)")
     p.set_defaults(func=run)
@@ -55,8 +59,13 @@ def _table(rows: dict[str, Any], prev: dict[str, Any], dt_s: float, final: bool)
             db = st.bytes - (old.bytes if old else 0)
             rate, bw = (dc / dt_s, db / dt_s / 1e6) if dt_s > 0 else (0.0, 0.0)
         t.add_row(
-            topic, st.msgtype.split("/")[-1], str(st.count), f"{rate:.1f}", f"{bw:.2f}",
-            f"[red]{st.missed}[/]" if st.missed else "0", f"[red]{st.dropped}[/]" if st.dropped else "0",
+            topic,
+            st.msgtype.split("/")[-1],
+            str(st.count),
+            f"{rate:.1f}",
+            f"{bw:.2f}",
+            f"[red]{st.missed}[/]" if st.missed else "0",
+            f"[red]{st.dropped}[/]" if st.dropped else "0",
             f"{st.max_gap_ns / 1e9:.3f}",
         )
     return t
@@ -90,9 +99,14 @@ def run(args: argparse.Namespace) -> int:
         out = Console(width=160)
     try:
         rec = start_recording(
-            args.output, bus_cfg=_bus_config(args, lab), topics=args.topics, lab_cfg=lab,
-            compression=args.compression, allow_overwrite=args.force,
-            split_size_mb=args.split_size, split_duration_s=args.split_duration,
+            args.output,
+            bus_cfg=_bus_config(args, lab),
+            topics=args.topics,
+            lab_cfg=lab,
+            compression=args.compression,
+            allow_overwrite=args.force,
+            split_size_mb=args.split_size,
+            split_duration_s=args.split_duration,
         )
         console.print(f"recording {', '.join(rec.topics)} to {args.output} (Ctrl-C to stop)")
         t_start = time.monotonic()

@@ -173,10 +173,7 @@ def parse_endpoint(url: str, default_baud: int = 57600) -> Endpoint:
 
 
 def _looks_like_serial(text: str) -> bool:
-    return (
-        text.startswith("/dev/")
-        or re.match(r"^(COM\d+|\\\\\.\\COM\d+)(:|$)", text, re.IGNORECASE) is not None
-    )
+    return text.startswith("/dev/") or re.match(r"^(COM\d+|\\\\\.\\COM\d+)(:|$)", text, re.IGNORECASE) is not None
 
 
 def _parse_serial(url: str, rest: str, default_baud: int) -> Endpoint:
@@ -276,9 +273,7 @@ def _bind_error(endpoint: Endpoint, exc: OSError) -> EndpointError:
             f"{endpoint.host} in {endpoint.url} is not an address of this machine; listen on 0.0.0.0 or a local address"
         )
     if exc.errno == errno.EACCES:
-        return EndpointError(
-            f"no permission to open port {endpoint.port} of {endpoint.url}; use a port above 1023"
-        )
+        return EndpointError(f"no permission to open port {endpoint.port} of {endpoint.url}; use a port above 1023")
     return EndpointError(f"cannot open {endpoint.url}: {exc.strerror}; check link.url")
 
 
@@ -287,7 +282,8 @@ def _resolve(endpoint: Endpoint, kind: socket.SocketKind) -> tuple[int, tuple[st
         infos = socket.getaddrinfo(endpoint.host, endpoint.port, type=kind)
     except socket.gaierror as exc:
         raise EndpointError(
-            f"cannot resolve host {endpoint.host!r} of {endpoint.url} ({exc.strerror}); use an IP address or a known name"
+            f"cannot resolve host {endpoint.host!r} of {endpoint.url} ({exc.strerror}); "
+            "use an IP address or a known name"
         ) from exc
     family, _, _, _, addr = infos[0]
     return family, (str(addr[0]), int(addr[1]))
@@ -407,11 +403,7 @@ class _TcpClient:
             self._sock.connect(addr)
         except OSError as exc:
             self._sock.close()
-            what = (
-                "refused the connection"
-                if isinstance(exc, ConnectionRefusedError)
-                else f"is unreachable ({exc})"
-            )
+            what = "refused the connection" if isinstance(exc, ConnectionRefusedError) else f"is unreachable ({exc})"
             raise EndpointError(
                 f"{endpoint.url} {what}; is the autopilot/simulator running and listening on TCP port {endpoint.port}?"
             ) from exc
@@ -534,9 +526,7 @@ class _Serial:
 
         self._endpoint = endpoint
         try:
-            self._port = serial.Serial(
-                endpoint.device, endpoint.baud, timeout=0, write_timeout=1.0, exclusive=True
-            )
+            self._port = serial.Serial(endpoint.device, endpoint.baud, timeout=0, write_timeout=1.0, exclusive=True)
         except serial.SerialException as exc:
             cause = exc.__cause__ or exc.__context__
             errno_ = getattr(exc, "errno", None) or getattr(cause, "errno", None)

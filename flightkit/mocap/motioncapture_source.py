@@ -133,7 +133,9 @@ class MotionCaptureSource:
             if not self._stop.is_set():
                 logger.error("motioncapture %s stopped: %s", self._describe(), exc)
                 self._store.fail(
-                    MocapError(f"motioncapture {self._describe()} failed: {exc}; check system_type, hostname and options")
+                    MocapError(
+                        f"motioncapture {self._describe()} failed: {exc}; check system_type, hostname and options"
+                    )
                 )
                 self._first_frame.set()
 

@@ -103,9 +103,10 @@ def pair() -> Iterator[tuple[zenoh.Session, zenoh.Session, int]]:
 def test_pose_stream_between_two_sessions_in_order() -> None:
     async def main() -> None:
         with pair() as (a, b, _):
-            with BusSubscriber(a, "uav1/mocap/*/pose") as sub, BusPublisher(
-                b, "uav1/mocap/uav1/pose", M.PoseStamped, reliable=True, express=True
-            ) as pub:
+            with (
+                BusSubscriber(a, "uav1/mocap/*/pose") as sub,
+                BusPublisher(b, "uav1/mocap/uav1/pose", M.PoseStamped, reliable=True, express=True) as pub,
+            ):
                 first = deliver(pub, sub, 0)
                 for i in range(50):
                     pub.publish(M.PoseStamped(M.Header(1_000 + i, "mocap"), (float(i), 0.0, 1.0)))
@@ -116,7 +117,12 @@ def test_pose_stream_between_two_sessions_in_order() -> None:
                         break
                 assert [s.seq for s in got] == list(range(first.seq + 1, first.seq + 51))
                 key, msgtype, seq, stamp_ns, payload = got[7]
-                assert (key, msgtype, seq, stamp_ns) == ("uav1/mocap/uav1/pose", M.PoseStamped.TYPE, first.seq + 8, 1_007)
+                assert (key, msgtype, seq, stamp_ns) == (
+                    "uav1/mocap/uav1/pose",
+                    M.PoseStamped.TYPE,
+                    first.seq + 8,
+                    1_007,
+                )
                 assert M.PoseStamped.decode(payload).position_m == (7.0, 0.0, 1.0)
                 assert sub.missed() == 0 and sub.received("uav1/mocap/uav1/pose") == 51
                 with pytest.raises(TimeoutError, match="no message on"):
@@ -258,9 +264,12 @@ def test_subprocess_publisher_to_in_process_subscriber() -> None:
         images = BusSubscriber(s, "uav1/camera/*/image", maxlen=100)
         ack = s.declare_publisher("probe/ack")
         probe = s.declare_subscriber("probe/child", lambda _s: ack.put(b""))
-        proc = subprocess.Popen(
+        proc = subprocess.Popen(  # noqa: ASYNC220 - started once; the test waits on Zenoh, not the pipe
             [sys.executable, "-c", _CHILD, str(port), str(n_pose), str(n_img)],
-            cwd=REPO_ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+            cwd=REPO_ROOT,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
         )
         try:
             got = [await poses.recv(timeout_s=15.0) for _ in range(n_pose)]
@@ -316,7 +325,9 @@ def test_mcap_with_our_schemas_opens_in_mcap_ros2_and_rosbags(tmp_path: Path) ->
         w.finish()
 
     with path.open("rb") as fh:
-        decoded = {ch.topic: m for _, ch, _, m in make_reader(fh, decoder_factories=[DecoderFactory()]).iter_decoded_messages()}
+        decoded = {
+            ch.topic: m for _, ch, _, m in make_reader(fh, decoder_factories=[DecoderFactory()]).iter_decoded_messages()
+        }
     assert decoded["/pose"].pose.orientation.z == 0.6 and decoded["/pose"].header.stamp.nanosec == 123
     assert bytes(decoded["/image"].data) == bytes([9]) * 72 and decoded["/image"].step == 18
     assert list(decoded["/info"].k) == list(info.k)
@@ -358,8 +369,11 @@ def test_tls_settings_are_checked_and_written(tmp_path: Path) -> None:
         build_zenoh_config(BusConfig(tls_root_ca=str(tmp_path / "ca.pem"), tls_cert=str(tmp_path / "cert.pem")))
     conf = build_zenoh_config(
         BusConfig(
-            mode=BusMode.CLIENT, connect=("tls/gs.lab:7447",), tls_root_ca=str(tmp_path / "ca.pem"),
-            tls_cert=str(tmp_path / "cert.pem"), tls_key=str(tmp_path / "key.pem"),
+            mode=BusMode.CLIENT,
+            connect=("tls/gs.lab:7447",),
+            tls_root_ca=str(tmp_path / "ca.pem"),
+            tls_cert=str(tmp_path / "cert.pem"),
+            tls_key=str(tmp_path / "key.pem"),
         )
     )
     tls = json.loads(conf.get_json("transport/link/tls"))

@@ -95,8 +95,11 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, LabConfig
         mocap.stop()
         cam.stop()
         rec.wait_for(
-            lambda st: st.get("uav1/camera/right/image") is not None and st["uav1/camera/right/image"].count >= frames
-            and st["uav1/mocap/uav1/pose"].count >= ticks + 1,
+            lambda st: (
+                st.get("uav1/camera/right/image") is not None
+                and st["uav1/camera/right/image"].count >= frames
+                and st["uav1/mocap/uav1/pose"].count >= ticks + 1
+            ),
             15,
         )
         report = rec.stop()
@@ -180,9 +183,7 @@ def test_recorded_image_matches_a_fresh_render(recording: tuple[Path, LabConfig,
     assert np.array_equal(img.array(), fresh.color_rgb)
 
 
-def test_export_tum_follows_the_format_and_loads_back(
-    recording: tuple[Path, LabConfig, int], tmp_path: Path
-) -> None:
+def test_export_tum_follows_the_format_and_loads_back(recording: tuple[Path, LabConfig, int], tmp_path: Path) -> None:
     out, lab, frames = recording
     dst = tmp_path / "tum"
     seen: list[tuple[int, int]] = []
@@ -233,9 +234,7 @@ def mm_first_frame(out: Path) -> np.ndarray:
     return Image.decode(m.data).array().astype(np.float64)
 
 
-def test_export_euroc_follows_the_format_and_loads_back(
-    recording: tuple[Path, LabConfig, int], tmp_path: Path
-) -> None:
+def test_export_euroc_follows_the_format_and_loads_back(recording: tuple[Path, LabConfig, int], tmp_path: Path) -> None:
     out, lab, frames = recording
     dst = tmp_path / "euroc"
     rep = export_recording(out, dst, "euroc")
@@ -255,7 +254,9 @@ def test_export_euroc_follows_the_format_and_loads_back(
     frame = next(iter(seq.frames()))
     assert frame.right_gray is not None and frame.T_world_camera is not None
     t0 = LockstepClock().time_ns()
-    expected = T_WORLD_MOCAP.inverse() @ truth_at((frame.stamp_ns - t0) * 1e-9) @ lab.camera.T_body_camera.to_transform()
+    expected = (
+        T_WORLD_MOCAP.inverse() @ truth_at((frame.stamp_ns - t0) * 1e-9) @ lab.camera.T_body_camera.to_transform()
+    )
     assert frame.T_world_camera.almost_equal(expected, 1e-6, 1e-6)
     raw = open_sequence(dst, rectify=False, stereo=False)
     assert len(raw) == frames
@@ -273,7 +274,11 @@ def test_camera_thread_publishes_every_due_frame(sessions: tuple[object, object]
     clock = LockstepClock()
     cfg = CameraConfig(width_px=160, height_px=120, rate_hz=10.0)
     cam = SimCameraPublisher(
-        pub_s, Keys("uav9"), lambda: (clock.time_ns(), truth_at(clock.monotonic_s())), cfg, clock,  # type: ignore[arg-type]
+        pub_s,
+        Keys("uav9"),
+        lambda: (clock.time_ns(), truth_at(clock.monotonic_s())),
+        cfg,
+        clock,  # type: ignore[arg-type]
         capture_cfg=CaptureConfig(depth=False, tf=False),
     )
     with cam:

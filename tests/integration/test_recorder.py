@@ -32,7 +32,9 @@ def cdr_string(text: str) -> bytes:
 
 def sample(i: int, topic: str = "uav1/test/chatter", size: int = 0) -> StreamSample:
     text = f"msg {i}" + "x" * size
-    return StreamSample(topic, "std_msgs/msg/String", cdr_string(text), i, 1_000_000_000 + i * 1000, 1_000_000_000 + i * 1000)
+    return StreamSample(
+        topic, "std_msgs/msg/String", cdr_string(text), i, 1_000_000_000 + i * 1000, 1_000_000_000 + i * 1000
+    )
 
 
 @pytest.mark.parametrize("compression", [Compression.NONE, Compression.ZSTD, Compression.LZ4])

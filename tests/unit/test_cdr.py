@@ -50,7 +50,9 @@ stamps = st.integers(min_value=0, max_value=2**31 * 1_000_000_000 - 1)
 
 @settings(max_examples=60, deadline=None)
 @given(stamps, frame_ids, st.tuples(finite, finite, finite), st.tuples(finite, finite, finite, finite))
-def test_pose_stamped_matches_rosbags_bytes(stamp_ns: int, frame: str, p: tuple[float, ...], q: tuple[float, ...]) -> None:
+def test_pose_stamped_matches_rosbags_bytes(
+    stamp_ns: int, frame: str, p: tuple[float, ...], q: tuple[float, ...]
+) -> None:
     ours = M.PoseStamped(M.Header(stamp_ns, frame), p, q)  # type: ignore[arg-type]
     ref = T["geometry_msgs/msg/PoseStamped"](header=ros_header(stamp_ns, frame), pose=ros_pose(p, q))
     assert bytes(ours.encode()) == ros_bytes(ref, M.PoseStamped.TYPE)
@@ -93,8 +95,13 @@ def test_image_matches_rosbags_and_round_trips(encoding: str, shape: tuple[int, 
     img = M.Image.from_array(M.Header(42_000_000_001, "cam"), arr, encoding)
     payload = img.encode()
     ref = T["sensor_msgs/msg/Image"](
-        header=ros_header(42_000_000_001, "cam"), height=shape[0], width=shape[1], encoding=encoding,
-        is_bigendian=0, step=img.step, data=arr.reshape(-1).view(np.uint8),
+        header=ros_header(42_000_000_001, "cam"),
+        height=shape[0],
+        width=shape[1],
+        encoding=encoding,
+        is_bigendian=0,
+        step=img.step,
+        data=arr.reshape(-1).view(np.uint8),
     )
     assert bytes(payload) == ros_bytes(ref, M.Image.TYPE)
     back = M.Image.decode(bytes(payload))
@@ -163,13 +170,28 @@ def test_compressed_image_matches_rosbags() -> None:
 
 def test_camera_info_matches_rosbags_and_round_trips() -> None:
     ours = M.CameraInfo.from_intrinsics(
-        M.Header(9, "cam_left"), 640, 480, 320.0, 321.0, 319.5, 239.5, d=(0.1, -0.05, 0.001, 0.0, 0.0),
+        M.Header(9, "cam_left"),
+        640,
+        480,
+        320.0,
+        321.0,
+        319.5,
+        239.5,
+        d=(0.1, -0.05, 0.001, 0.0, 0.0),
         baseline_tx=-16.0,
     )
     ours = dataclasses.replace(ours, roi=(1, 2, 3, 4, True))
     ref = T["sensor_msgs/msg/CameraInfo"](
-        header=ros_header(9, "cam_left"), height=480, width=640, distortion_model="plumb_bob",
-        d=np.array(ours.d), k=np.array(ours.k), r=np.array(ours.r), p=np.array(ours.p), binning_x=0, binning_y=0,
+        header=ros_header(9, "cam_left"),
+        height=480,
+        width=640,
+        distortion_model="plumb_bob",
+        d=np.array(ours.d),
+        k=np.array(ours.k),
+        r=np.array(ours.r),
+        p=np.array(ours.p),
+        binning_x=0,
+        binning_y=0,
         roi=T["sensor_msgs/msg/RegionOfInterest"](x_offset=1, y_offset=2, height=3, width=4, do_rectify=True),
     )
     assert bytes(ours.encode()) == ros_bytes(ref, M.CameraInfo.TYPE)
@@ -186,7 +208,8 @@ def test_tf_message_matches_rosbags_and_round_trips() -> None:
     for t in (a, b):
         ros_tfs.append(
             T["geometry_msgs/msg/TransformStamped"](
-                header=ros_header(t.header.stamp_ns, t.header.frame_id), child_frame_id=t.child_frame_id,
+                header=ros_header(t.header.stamp_ns, t.header.frame_id),
+                child_frame_id=t.child_frame_id,
                 transform=T["geometry_msgs/msg/Transform"](
                     translation=T["geometry_msgs/msg/Vector3"](*t.translation_m),
                     rotation=T["geometry_msgs/msg/Quaternion"](*t.quat_xyzw),
@@ -202,13 +225,21 @@ def test_tf_message_matches_rosbags_and_round_trips() -> None:
 def test_odometry_matches_rosbags_and_round_trips() -> None:
     cov = tuple(float(i) for i in range(36))
     ours = M.Odometry(
-        M.Header(77, "odom"), "base_link", (1.0, 2.0, 3.0), (0.0, 0.0, 0.6, 0.8), cov,
-        (0.1, 0.2, 0.3), (0.01, 0.02, 0.03), tuple(reversed(cov)),
+        M.Header(77, "odom"),
+        "base_link",
+        (1.0, 2.0, 3.0),
+        (0.0, 0.0, 0.6, 0.8),
+        cov,
+        (0.1, 0.2, 0.3),
+        (0.01, 0.02, 0.03),
+        tuple(reversed(cov)),
     )
     ref = T["nav_msgs/msg/Odometry"](
-        header=ros_header(77, "odom"), child_frame_id="base_link",
-        pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=ros_pose((1.0, 2.0, 3.0), (0.0, 0.0, 0.6, 0.8)),
-                                                       covariance=np.array(cov)),
+        header=ros_header(77, "odom"),
+        child_frame_id="base_link",
+        pose=T["geometry_msgs/msg/PoseWithCovariance"](
+            pose=ros_pose((1.0, 2.0, 3.0), (0.0, 0.0, 0.6, 0.8)), covariance=np.array(cov)
+        ),
         twist=T["geometry_msgs/msg/TwistWithCovariance"](
             twist=T["geometry_msgs/msg/Twist"](
                 linear=T["geometry_msgs/msg/Vector3"](0.1, 0.2, 0.3),
@@ -241,8 +272,12 @@ def test_schema_lists_each_dependency_once() -> None:
     deps = [line[5:] for line in text.splitlines() if line.startswith("MSG: ")]
     assert len(deps) == len(set(deps))
     assert set(deps) == {
-        "geometry_msgs/TransformStamped", "std_msgs/Header", "builtin_interfaces/Time",
-        "geometry_msgs/Transform", "geometry_msgs/Vector3", "geometry_msgs/Quaternion",
+        "geometry_msgs/TransformStamped",
+        "std_msgs/Header",
+        "builtin_interfaces/Time",
+        "geometry_msgs/Transform",
+        "geometry_msgs/Vector3",
+        "geometry_msgs/Quaternion",
     }
     assert ("=" * 80 + "\nMSG: std_msgs/Header\n") in text
 

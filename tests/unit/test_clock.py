@@ -39,7 +39,7 @@ def test_lockstep_wakes_sleepers_in_deadline_order() -> None:
 
     async def main() -> None:
         tasks = [asyncio.create_task(sleeper("b", 0.2)), asyncio.create_task(sleeper("a", 0.1))]
-        while clock.pending_sleepers < 2:
+        while clock.pending_sleepers < 2:  # noqa: ASYNC110 - yield until both tasks sleep on the clock
             await asyncio.sleep(0)
         clock.advance(0.05)
         await asyncio.sleep(0)

@@ -30,9 +30,7 @@ def _traj(n: int = 20) -> Trajectory:
     t = np.arange(n)
     q = Rotation.from_euler("zyx", np.column_stack([0.1 * t, 0.05 * t, -0.02 * t])).as_quat()
     pos = np.column_stack([0.1 * t, np.sin(t), 0.5 + 0 * t])
-    return Trajectory(
-        1_305_031_102_000_000_000 + t * 33_333_333, pos, np.column_stack([q[:, 3], q[:, :3]]), "t"
-    )
+    return Trajectory(1_305_031_102_000_000_000 + t * 33_333_333, pos, np.column_stack([q[:, 3], q[:, :3]]), "t")
 
 
 def test_stamps_parse_exactly_to_nanoseconds() -> None:
@@ -149,11 +147,7 @@ def test_tum_rgbd_folder(tmp_path: Path) -> None:
     f = frames[2]
     assert f.stamp_ns == parse_stamp_ns(f"{100.0 + 2 / 30:.6f}")
     assert f.color_bgr is not None and f.gray.shape == (48, 64)
-    assert (
-        f.depth_m is not None
-        and f.depth_m[1, 1] == pytest.approx((5000 + 200) / 5000)
-        and f.depth_m[0, 0] == 0
-    )
+    assert f.depth_m is not None and f.depth_m[1, 1] == pytest.approx((5000 + 200) / 5000) and f.depth_m[0, 0] == 0
     assert f.T_world_camera is not None
     expected = gt.interpolate([f.stamp_ns]).positions[0]
     assert np.allclose(f.T_world_camera.translation, expected)
@@ -218,8 +212,23 @@ def test_video_with_json_calibration(tmp_path: Path) -> None:
         open_sequence(video)
 
 
-_HEADER = "builtin_interfaces/Time stamp\nstring frame_id\n================================================================================\nMSG: builtin_interfaces/Time\nint32 sec\nuint32 nanosec"
-_IMAGE = "std_msgs/Header header\nuint32 height\nuint32 width\nstring encoding\nuint8 is_bigendian\nuint32 step\nuint8[] data\n"
+_HEADER = (
+    "builtin_interfaces/Time stamp\n"
+    "string frame_id\n"
+    "================================================================================\n"
+    "MSG: builtin_interfaces/Time\n"
+    "int32 sec\n"
+    "uint32 nanosec"
+)
+_IMAGE = (
+    "std_msgs/Header header\n"
+    "uint32 height\n"
+    "uint32 width\n"
+    "string encoding\n"
+    "uint8 is_bigendian\n"
+    "uint32 step\n"
+    "uint8[] data\n"
+)
 _INFO = (
     "std_msgs/Header header\nuint32 height\nuint32 width\nstring distortion_model\nfloat64[] d\nfloat64[9] k\n"
     "float64[9] r\nfloat64[12] p\nuint32 binning_x\nuint32 binning_y\nRegionOfInterest roi\n"
@@ -350,9 +359,7 @@ def test_mcap_recording_written_with_mcap_ros2(tmp_path: Path) -> None:
         assert f.color_bgr is not None and np.array_equal(f.color_bgr, c)
         assert f.depth_raw is not None and np.array_equal(f.depth_raw, d) and f.depth_scale_m == 1e-3
         assert f.T_world_camera is not None
-        assert f.T_world_camera.translation[0] == pytest.approx(
-            0.01 * (f.stamp_ns - 1_000_000_000) / 10_000_000
-        )
+        assert f.T_world_camera.translation[0] == pytest.approx(0.01 * (f.stamp_ns - 1_000_000_000) / 10_000_000)
     assert [f.index for f in seq.frames(1, None, 2)] == [1, 3]
     gt = seq.groundtruth()
     assert len(gt) == 60 and gt.positions[39, 0] == pytest.approx(0.39)
