@@ -393,6 +393,7 @@ async def test_external_pose_and_ekf_origin_reach_the_autopilot() -> None:
             await link.wait_for(
                 lambda t: "EKF2 starting vision fusion" in link.statustext, 3.0, "vision fusion"
             )
+    assert ("vision", "fusing") in events
 
 
 @asynctest

@@ -579,3 +579,4 @@ def test_no_fixed_ports_left_bound(make_lab: Callable[..., SimLab]) -> None:
     lab.stop()
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", port))  # the port is free again after stop()
+        assert s.getsockname()[1] == port
