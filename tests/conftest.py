@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import socket
+import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -59,3 +61,28 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"shared data not found at {SHARED_DATA}")
     return SHARED_DATA
+
+
+def wait(predicate: Callable[[], object], timeout_s: float, what: str) -> None:
+    """Poll ``predicate`` until it is true; AssertionError naming ``what`` after ``timeout_s`` (wall)."""
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.001)
+
+
+@pytest.fixture
+def sessions() -> Iterator[tuple[object, object]]:
+    """Two Zenoh sessions joined on a private loopback port: (listener, connector)."""
+    from flightkit.bus.session import open_session
+    from flightkit.config import BusConfig
+
+    port = free_tcp_port()
+    a = open_session(BusConfig(listen=(f"tcp/127.0.0.1:{port}",)))
+    b = open_session(BusConfig(connect=(f"tcp/127.0.0.1:{port}",)))
+    try:
+        yield a, b
+    finally:
+        b.close()
+        a.close()

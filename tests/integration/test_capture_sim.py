@@ -6,8 +6,6 @@ Time is a LockstepClock driven by the test in mocap ticks (1/240 s), so message 
 from __future__ import annotations
 
 import math
-import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
@@ -29,7 +27,7 @@ from flightkit.config import BusConfig, CameraConfig, LabConfig, load_config
 from flightkit.datasets import open_sequence, read_tum
 from flightkit.frames import Transform
 from flightkit.sim.mocap_publisher import SimMocapPublisher
-from tests.conftest import free_tcp_port
+from tests.conftest import free_tcp_port, wait
 
 MOCAP_HZ = 240
 CAMERA_HZ = 30
@@ -43,24 +41,8 @@ def truth_at(t_s: float) -> Transform:
     return Transform.from_xyz_yaw([math.cos(a), math.sin(a), 1.5], a + math.pi)
 
 
-@pytest.fixture
-def sessions() -> Iterator[tuple[object, object]]:
-    port = free_tcp_port()
-    a = open_session(BusConfig(listen=(f"tcp/127.0.0.1:{port}",)))
-    b = open_session(BusConfig(connect=(f"tcp/127.0.0.1:{port}",)))
-    try:
-        yield a, b
-    finally:
-        b.close()
-        a.close()
 
 
-def wait(predicate, timeout_s: float, what: str) -> None:  # type: ignore[no-untyped-def]
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.001)
 
 
 @pytest.fixture(scope="module")

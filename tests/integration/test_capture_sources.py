@@ -10,7 +10,6 @@ import asyncio
 import json
 import math
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
@@ -44,29 +43,13 @@ from flightkit.datasets import read_tum
 from flightkit.frames import Transform
 from flightkit.mocap.bus_source import BusMocapSource
 from flightkit.mocap.motioncapture_source import MotionCaptureSource, mock_rigid_bodies
-from tests.conftest import free_tcp_port
+from tests.conftest import free_tcp_port, wait
 
 T0_NS = 1_700_000_000_000_000_000
 
 
-@pytest.fixture
-def sessions() -> Iterator[tuple[object, object]]:
-    port = free_tcp_port()
-    a = open_session(BusConfig(listen=(f"tcp/127.0.0.1:{port}",)))
-    b = open_session(BusConfig(connect=(f"tcp/127.0.0.1:{port}",)))
-    try:
-        yield a, b
-    finally:
-        b.close()
-        a.close()
 
 
-def wait(predicate, timeout_s: float, what: str) -> None:  # type: ignore[no-untyped-def]
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.002)
 
 
 def messages(path: Path) -> dict[str, list[tuple[int, bytes]]]:
