@@ -17,6 +17,14 @@ Three set-ups, picked by config alone:
   ``zenoh_config_file``, which is loaded first; the BusConfig fields are applied on top.
 
 Multicast scouting is off unless ``multicast_scouting = true``.
+
+Transport tuning (applied unless a ``zenoh_config_file`` sets the key itself): a best-effort
+publisher (images) waits up to :data:`DROP_WAIT_US` for room in the transmit queue before
+Zenoh drops the sample, instead of Zenoh's 1 ms, and the data priority gets a deeper queue.
+With 1 ms, a scheduler stall of the sending thread on a loaded host (they reach several ms
+on small VMs and single-board computers) dropped camera frames at 30 Hz with the link idle;
+20 ms is still shorter than a frame period at 30 Hz, so a truly congested link keeps
+dropping instead of slowing the camera loop (docs/bus.md).
 """
 
 from __future__ import annotations
@@ -39,6 +47,15 @@ logger = logging.getLogger(__name__)
 
 _OPEN_ATTEMPTS = 4
 _CONNECT_TIMEOUT_MS = 2000
+
+DROP_WAIT_US = 20_000
+"""How long a best-effort sample waits for the transmit queue before it is dropped (us)."""
+
+# key -> (Zenoh's own default, flightkit's default)
+_TRANSPORT_DEFAULTS: dict[str, tuple[Any, Any]] = {
+    "transport/link/tx/queue/congestion_control/drop/wait_before_drop": (1000, DROP_WAIT_US),
+    "transport/link/tx/queue/size/data": (2, 16),
+}
 
 
 def _loopback(port: int) -> str:
@@ -94,6 +111,9 @@ def build_zenoh_config(
     _check_endpoints(listen, "listen")
     _check_endpoints(connect, "connect")
     _insert(conf, "mode", cfg.mode.value, source)
+    for key, (zenoh_default, ours) in _TRANSPORT_DEFAULTS.items():
+        if json.loads(conf.get_json(key)) == zenoh_default:  # not set by the user's file
+            _insert(conf, key, ours, "flightkit's transport defaults")
     if listen:
         _insert(conf, "listen/endpoints", list(listen), source)
     if connect:
