@@ -2,11 +2,14 @@
 
 Two parts, both against the in-process simulated lab over real UDP:
 
-1. **Timing** (wall time, ``SimClock(speed=1)``): take off and hold with the simulated mocap at
-   100 Hz and at 200 Hz. A UDP sniffer sits between the link and the simulated autopilot and
-   timestamps every SET_POSITION_TARGET_LOCAL_NED as it passes; each one is matched to the mocap
-   sample the runner had when it computed that setpoint, whose publication time the mocap
-   source's hook recorded. Reported: control-cycle compute time p50/p99 (the runner's own
+1. **Timing** (wall time): take off and hold with the simulated mocap at 100 Hz and at 200 Hz.
+   The simulator (``flightkit sim``: autopilot on UDP, mocap on the bus) runs in its own
+   process, standing in for the hardware; this process holds what a companion computer runs:
+   the link, the bus mocap source and the flight runner. A UDP sniffer, in a third process,
+   sits between the link and the autopilot and timestamps every SET_POSITION_TARGET_LOCAL_NED
+   as it passes; each one is matched to the mocap sample the runner had when it computed that
+   setpoint, and its latency counts from the moment that sample reached this process (both
+   CLOCK_MONOTONIC). Reported: control-cycle compute time p50/p99 (the runner's own
    measurement: pose, reference, supervisor, controller, send), sample-to-wire latency p50/p99,
    loop period jitter. Each rate runs twice: setpoints sent at once (``send_now``) and, as the
    baseline, only by the link's 100 Hz stream thread.
@@ -26,80 +29,78 @@ from __future__ import annotations
 import argparse
 import asyncio
 import dataclasses
+import json
 import logging
 import math
 import select
 import socket
-import threading
+import struct
+import subprocess
+import sys
 import time
 from collections import deque
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink2
 
-from flightkit.clock import SimClock
-from flightkit.config import LabConfig
 from flightkit.link.base import VelocitySetpoint
 from flightkit.link.mavlink import encode_velocity_setpoint
 from trajectories.flightlog import read_flight_log
 from trajectories.plan import Plan, load_plan
 from trajectories.runner import FlightRunner
-from trajectories.simulated import fly_plan_in_sim, sim_session
+from trajectories.simulated import fly_plan_in_sim
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 SPM = mavlink2.MAVLINK_MSG_ID_SET_POSITION_TARGET_LOCAL_NED
+SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # Linux; the cmsg type SCM_TIMESTAMPNS is the same
+_TIMESPEC = struct.Struct("@qq")  # struct timespec on 64-bit Linux
 
 
-# ---------------------------------------------------------------------------- the sniffer
+# ---------------------------------------------------------------------------- the sniffer process
 
 
-class Sniffer:
-    """A UDP relay between the link and the simulated autopilot that timestamps setpoints.
-
-    The link connects to :attr:`port`; datagrams go on to ``target`` and replies come back.
-    Every SET_POSITION_TARGET_LOCAL_NED from the link is recorded as (perf_counter_ns at
-    receipt, fields) before it is forwarded.
-    """
-
-    def __init__(self, target: tuple[str, int]) -> None:
-        self.target = target
-        self.front = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.front.bind(("127.0.0.1", 0))
-        self.back = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.back.bind(("127.0.0.1", 0))
-        self.port = self.front.getsockname()[1]
-        self.client: tuple[str, int] | None = None
-        self.setpoints: list[tuple[int, tuple[float, ...]]] = []
-        self._mav = mavlink2.MAVLink(None)
-        self._mav.robust_parsing = True
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="sniffer", daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            ready, _, _ = select.select([self.front, self.back], [], [], 0.1)
-            for sock in ready:
-                data, addr = sock.recvfrom(65535)
-                t_ns = time.perf_counter_ns()
-                if sock is self.front:
-                    self.client = addr
-                    self.back.sendto(data, self.target)
-                    for msg in self._mav.parse_buffer(data) or []:
-                        if msg.get_msgId() == SPM:
-                            self.setpoints.append(
-                                (t_ns, (msg.vx, msg.vy, msg.vz, msg.yaw, msg.yaw_rate, msg.coordinate_frame))
-                            )
-                elif self.client is not None:
-                    self.front.sendto(data, self.client)
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(2.0)
-        self.front.close()
-        self.back.close()
+def sniffer_role(target_port: int) -> int:
+    """A UDP relay between the link and the simulated autopilot, in a process of its own, that
+    timestamps each SET_POSITION_TARGET_LOCAL_NED from the link with the kernel's receive time
+    (SO_TIMESTAMPNS: when it was on the wire, not when this process woke up), expressed on
+    CLOCK_MONOTONIC like ``time.monotonic`` in every process. Prints its port, relays until
+    stdin closes, then prints one JSON list ``[[t_ns, vx, vy, vz, yaw, yaw_rate, frame], ...]``."""
+    target = ("127.0.0.1", target_port)
+    front = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    front.bind(("127.0.0.1", 0))
+    front.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+    back = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    back.bind(("127.0.0.1", 0))
+    mav = mavlink2.MAVLink(None)
+    mav.robust_parsing = True
+    client: tuple[str, int] | None = None
+    seen: list[tuple[int, tuple[float, ...]]] = []
+    print(front.getsockname()[1], flush=True)
+    while True:
+        ready, _, _ = select.select([front, back, sys.stdin], [], [])
+        if sys.stdin in ready and not sys.stdin.readline():
+            break
+        if front in ready:
+            data, ancillary, _, client = front.recvmsg(65535, socket.CMSG_SPACE(_TIMESPEC.size))
+            back.sendto(data, target)
+            # the kernel's receive stamp (CLOCK_REALTIME) on the CLOCK_MONOTONIC time line
+            t_ns = time.monotonic_ns()
+            for level, kind, cdata in ancillary:
+                if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS:
+                    sec, nsec = _TIMESPEC.unpack(cdata[: _TIMESPEC.size])
+                    t_ns = sec * 1_000_000_000 + nsec - (time.time_ns() - time.monotonic_ns())
+            for msg in mav.parse_buffer(data) or []:
+                if msg.get_msgId() == SPM:
+                    seen.append((t_ns, (msg.vx, msg.vy, msg.vz, msg.yaw, msg.yaw_rate, msg.coordinate_frame)))
+        if back in ready:
+            data = back.recv(65535)
+            if client is not None:
+                front.sendto(data, client)
+    print(json.dumps([[t, *f] for t, f in seen]), flush=True)
+    return 0
 
 
 def _key(sp: VelocitySetpoint) -> tuple[float, ...]:
@@ -108,45 +109,44 @@ def _key(sp: VelocitySetpoint) -> tuple[float, ...]:
     return (*(float(x) for x in v), float(f.coordinate_frame))
 
 
-def _wire_key(fields: tuple[float, ...]) -> tuple[float, ...]:
+def _wire_key(fields: Sequence[float]) -> tuple[float, ...]:
     v = np.array(fields[:5], dtype=np.float32)
     return (*(float(x) for x in v), float(fields[5]))
 
 
 class Tap:
-    """Delegates to the link; remembers which mocap sample each setpoint was computed from."""
+    """Delegates to the link; remembers which mocap sample (and when it was received) each
+    setpoint was computed from."""
 
     def __init__(self, link: Any, mocap: Any, body: str, send_now: bool) -> None:
         self._link, self._mocap, self._body, self._send_now = link, mocap, body, send_now
-        self.set: list[tuple[tuple[float, ...], int]] = []
+        self.set: list[tuple[tuple[float, ...], float]] = []  # (setpoint key, sample received_s)
         self.called_s: list[float] = []
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._link, name)
 
     def set_velocity(self, setpoint: VelocitySetpoint, *, send_now: bool = False) -> None:
-        self.called_s.append(time.perf_counter())
+        self.called_s.append(time.monotonic())
         pose = self._mocap.latest(self._body)
-        self.set.append((_key(setpoint), pose.seq if pose is not None else -1))
+        self.set.append((_key(setpoint), pose.received_s if pose is not None else math.nan))
         self._link.set_velocity(setpoint, send_now=send_now and self._send_now)
 
 
-def match_latencies(
-    tap: Tap, wire: list[tuple[int, tuple[float, ...]]], published: dict[int, int]
-) -> list[float]:
-    """Sample-to-wire latency (ms) of each setpoint's first appearance on the wire, in order."""
-    pending: deque[tuple[tuple[float, ...], int]] = deque(tap.set)
+def match_latencies(tap: Tap, wire: Sequence[Sequence[float]]) -> list[float]:
+    """Sample-received-to-wire latency (ms) of each setpoint's first appearance on the wire."""
+    pending: deque[tuple[tuple[float, ...], float]] = deque(tap.set)
     out: list[float] = []
     last: tuple[float, ...] | None = None
-    for t_ns, fields in wire:
+    for t_ns, *fields in wire:
         k = _wire_key(fields)
         if k == last:
             continue  # a re-send by the stream
         for _ in range(min(len(pending), 50)):
-            key, seq = pending.popleft()
+            key, received_s = pending.popleft()
             if key == k:
-                if seq in published:
-                    out.append((t_ns - published[seq]) / 1e6)
+                if math.isfinite(received_s):
+                    out.append((t_ns / 1e9 - received_s) * 1e3)
                 last = k
                 break
     return out
@@ -172,44 +172,96 @@ class Timing:
     period_p99_ms: float
 
 
-async def timing_run(rate_hz: float, send_now: bool, hold_s: float, tmp: Path) -> Timing:
-    cfg = LabConfig()
-    async with sim_session(cfg, autopilot="px4", clock=SimClock(1.0), mocap_rate_hz=rate_hz) as s:
-        # re-route the link through the sniffer: a second link on the relay's port
-        sniff = Sniffer(s.lab.autopilot.bound_address)
-        from flightkit.link import open_link
+def _free_port(kind: int) -> int:
+    with socket.socket(socket.AF_INET, kind) as sk:
+        sk.bind(("127.0.0.1", 0))
+        return int(sk.getsockname()[1])
 
-        link_cfg = dataclasses.replace(s.config.link, url=f"udpout:127.0.0.1:{sniff.port}", source_system=250)
-        published: dict[int, int] = {}
-        s.mocap.hooks.append(lambda p: published.__setitem__(p.seq, time.perf_counter_ns()))
+
+LAB_TOML = """
+[vehicle]
+namespace = "uav1"
+autopilot = "px4"
+[link]
+url = "udpout:127.0.0.1:{link_port}"
+setpoint_rate_hz = 100
+source_system = 250
+[mocap]
+source = "bus"
+body = "uav1"
+[bus]
+{bus_role} = ["tcp/127.0.0.1:{bus_port}"]
+[sim]
+speed = 1.0
+mocap_rate_hz = {rate_hz}
+"""
+
+
+async def _hover(cfg: Any, send_now: bool, hold_s: float) -> tuple[Tap, list[float], int]:
+    from flightkit.clock import WallClock
+    from flightkit.link import open_link
+    from trajectories.runner import open_lab_mocap
+
+    clock = WallClock()
+    async with open_link(cfg.link, cfg.vehicle.autopilot, clock) as link, open_lab_mocap(cfg, clock) as mocap:
+        tap = Tap(link, mocap, cfg.mocap.body, send_now)
+        runner = FlightRunner(tap, mocap, body=cfg.mocap.body, autopilot=cfg.vehicle.autopilot, clock=clock)
         try:
-            async with open_link(link_cfg, s.config.vehicle.autopilot, s.clock) as link:
-                tap = Tap(link, s.mocap, s.config.mocap.body, send_now)
-                runner = FlightRunner(
-                    tap,
-                    s.mocap,
-                    body=s.config.mocap.body,  # type: ignore[arg-type]
-                    autopilot=s.config.vehicle.autopilot,
-                    clock=s.clock,
-                )
-                try:
-                    await runner.preflight()
-                    await runner.start(arm=True)
-                    await runner.takeoff(1.0, 0.5)
-                    tap.set.clear()
-                    tap.called_s.clear()
-                    sniff.setpoints.clear()
-                    t0 = len(runner._cycle_s)
-                    await runner.hold(hold_s)
-                    cycles = sorted(runner._cycle_s[t0:])
-                    n_set = len(tap.set)
-                    await runner.land()
-                finally:
-                    await runner.close()
+            await runner.preflight()
+            await runner.start(arm=True)
+            await runner.takeoff(1.0, 0.5)
+            tap.set.clear()
+            tap.called_s.clear()
+            t0 = len(runner._cycle_s)
+            await runner.hold(hold_s)
+            cycles = sorted(runner._cycle_s[t0:])
+            n_set = len(tap.set)
+            await runner.land()
         finally:
-            sniff.close()
+            await runner.close()
+    return tap, cycles, n_set
+
+
+def timing_run(rate_hz: float, send_now: bool, hold_s: float, tmp: Path) -> Timing:
+    """One hover on wall time with the simulator (autopilot + mocap on the bus, standing in for
+    the hardware) and the sniffer in processes of their own; the link, the bus mocap source and
+    the runner in this one, as on a companion computer."""
+    from flightkit.config import load_config
+
+    sim_port, bus_port = _free_port(socket.SOCK_DGRAM), _free_port(socket.SOCK_STREAM)
+    sim_toml = tmp / f"sim-{rate_hz:g}.toml"
+    sim_toml.write_text(LAB_TOML.format(link_port=0, bus_role="listen", bus_port=bus_port, rate_hz=rate_hz))
+    with (tmp / "sim.log").open("w") as sim_log:
+        sim = subprocess.Popen(
+            [sys.executable, "-m", "flightkit", "sim", "--config", str(sim_toml), "--listen",
+             f"udpin:127.0.0.1:{sim_port}", "--no-camera", "--ready-after", "0"],
+            stdout=sim_log, stderr=sim_log,
+        )
+    sniff = subprocess.Popen(
+        [sys.executable, __file__, "--role", "sniffer", "--target", str(sim_port)],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+    )
+    try:
+        assert sniff.stdout is not None and sniff.stdin is not None
+        sniff_port = int(sniff.stdout.readline())
+        ctl_toml = tmp / f"ctl-{rate_hz:g}.toml"
+        ctl_toml.write_text(
+            LAB_TOML.format(link_port=sniff_port, bus_role="connect", bus_port=bus_port, rate_hz=rate_hz)
+        )
+        tap, cycles, n_set = asyncio.run(_hover(load_config(ctl_toml), send_now, hold_s))
+        sniff.stdin.close()
+        wire = json.loads(sniff.stdout.readline())
+    finally:
+        for proc in (sniff, sim):
+            if proc.poll() is None:
+                proc.terminate()
+            try:
+                proc.wait(10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
     tap.set = tap.set[:n_set]
-    lat = match_latencies(tap, sniff.setpoints, published)
+    wire_after = [w for w in wire if w[0] / 1e9 >= tap.called_s[0]] if tap.called_s else wire
+    lat = match_latencies(tap, wire_after)
     # loop period: time between control cycles (each sends one setpoint), against the mocap period
     periods_ms = np.diff(np.array(tap.called_s[:n_set])) * 1e3
     nominal = 1000.0 / rate_hz
@@ -276,20 +328,24 @@ def main() -> None:
     ap.add_argument("--autopilot", default="px4", choices=["px4", "ardupilot"])
     ap.add_argument("--skip-timing", action="store_true")
     ap.add_argument("--skip-tracking", action="store_true")
+    ap.add_argument("--role", choices=("main", "sniffer"), default="main", help=argparse.SUPPRESS)
+    ap.add_argument("--target", type=int, help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.role == "sniffer":
+        sys.exit(sniffer_role(args.target))
     logging.basicConfig(level=logging.ERROR)
     tmp = Path("/tmp/flightkit-bench-control")
     tmp.mkdir(exist_ok=True)
 
     if not args.skip_timing:
-        print("timing (wall time, SimClock speed 1, PX4 personality, pymavlink, hover)")
+        print("timing (wall time; simulator and sniffer in their own processes; PX4 personality, pymavlink, hover)")
         print(
             f"{'mocap':>6} {'send':>9} {'cycle p50':>10} {'cycle p99':>10} {'lat p50':>8} {'lat p99':>8} "
             f"{'n':>5} {'jitter sd':>9} {'jitter p99':>10}"
         )
         for rate in (100.0, 200.0):
             for send_now in (True, False):
-                r = asyncio.run(timing_run(rate, send_now, args.hold, tmp))
+                r = timing_run(rate, send_now, args.hold, tmp)
                 print(
                     f"{rate:>4.0f}Hz {'now' if send_now else 'stream':>9} {r.cycle_p50_ms:>8.3f}ms "
                     f"{r.cycle_p99_ms:>8.3f}ms {r.lat_p50_ms:>6.2f}ms {r.lat_p99_ms:>6.2f}ms {r.matched:>5} "

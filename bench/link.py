@@ -2,10 +2,14 @@
 
 Run: ``.venv/bin/python bench/link.py [--seconds 3] [--commands 40]``
 
-1. Setpoint stream at 50 and 100 Hz on wall time, measured on the *receiving* side: a
-   plain UDP socket playing autopilot timestamps every SET_POSITION_TARGET_LOCAL_NED as it
-   arrives. Baseline in the same run: a naive loop that sleeps one period after each send
-   (relative sleeps), which is what most scripts do.
+1. Setpoint stream at 50, 100 and 200 Hz on wall time, measured on the *receiving* side: a
+   plain UDP socket playing autopilot, in a process of its own, timestamps every
+   SET_POSITION_TARGET_LOCAL_NED. The period error is computed from the kernel's receive
+   timestamps (SO_TIMESTAMPNS: when the datagram reached the socket, i.e. what an autopilot's
+   UART/UDP driver sees) and, for comparison, from when the receiving process woke up to read
+   it (which adds the receiver's own scheduling delay). Baselines in the same run: a naive loop
+   that sleeps one period after each send (relative sleeps), which is what most scripts do,
+   and a bare absolute-deadline sleep loop without I/O (the machine's scheduling floor).
 2. Command round trip: MAV_CMD_COMPONENT_ARM_DISARM -> COMMAND_ACK through MavlinkLink
    against the simulated autopilot on wall time (arm and disarm alternate).
 3. Real-time factor of the simulated autopilot at SimClock(speed=10): simulated seconds
@@ -19,6 +23,7 @@ import asyncio
 import multiprocessing as mp
 import socket
 import statistics
+import struct
 import sys
 import time
 from pathlib import Path
@@ -36,17 +41,21 @@ from flightkit.link.mavlink import MavlinkLink  # noqa: E402
 from flightkit.sim.autopilot import AutopilotOptions, SimAutopilot  # noqa: E402
 from flightkit.sim.personality import personality_for  # noqa: E402
 
+SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # Linux; the cmsg type SCM_TIMESTAMPNS is the same
+_TIMESPEC = struct.Struct("@qq")  # struct timespec on 64-bit Linux
+
 
 def _receiver_process(port_out: Any, cmd_in: Any) -> None:
     """Child process: answer with autopilot heartbeats and timestamp arriving setpoints."""
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.bind(("127.0.0.1", 0))
     sock.settimeout(0.05)
+    sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
     port_out.send(sock.getsockname()[1])
     rx = mavlink2.MAVLink(None, 1, 1)
     rx.robust_parsing = True
     tx = mavlink2.MAVLink(None, 1, 1)
-    arrivals: list[int] = []
+    arrivals: list[tuple[int, int]] = []  # (kernel receive time, process wake-up time), ns
     peer = None
     next_hb = 0.0
     while True:
@@ -59,11 +68,16 @@ def _receiver_process(port_out: Any, cmd_in: Any) -> None:
             else:
                 break
         try:
-            data, peer = sock.recvfrom(2048)
-            t = time.perf_counter_ns()
+            data, ancillary, _, peer = sock.recvmsg(2048, socket.CMSG_SPACE(_TIMESPEC.size))
+            t_app = time.time_ns()
+            t_kernel = t_app
+            for level, kind, cdata in ancillary:
+                if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS:
+                    sec, nsec = _TIMESPEC.unpack(cdata[: _TIMESPEC.size])
+                    t_kernel = sec * 1_000_000_000 + nsec
             for m in rx.parse_buffer(data) or []:
                 if m.get_type() == "SET_POSITION_TARGET_LOCAL_NED":
-                    arrivals.append(t)
+                    arrivals.append((t_kernel, t_app))
         except TimeoutError:
             pass
         now = time.monotonic()
@@ -86,7 +100,8 @@ class FakeReceiver:
     def clear(self) -> None:
         self._cmd_parent.send("clear")
 
-    def arrivals_ns(self) -> list[int]:
+    def arrivals_ns(self) -> list[tuple[int, int]]:
+        """(kernel receive time, receiver wake-up time) of each setpoint, ns."""
         self._cmd_parent.send("get")
         return list(self._data_parent.recv())
 
@@ -108,6 +123,13 @@ def period_stats(arrivals_ns: list[int], rate_hz: float) -> dict[str, float]:
     }
 
 
+def wire_stats(arrivals: list[tuple[int, int]], rate_hz: float) -> dict[str, float]:
+    """Period statistics from the kernel stamps, plus the p99 seen by the woken receiver."""
+    out = period_stats([k for k, _ in arrivals], rate_hz)
+    out["app_p99_ms"] = period_stats([a for _, a in arrivals], rate_hz)["p99_ms"]
+    return out
+
+
 async def bench_link_stream(rate_hz: float, seconds: float) -> dict[str, float]:
     recv = FakeReceiver()
     link = MavlinkLink(
@@ -125,7 +147,7 @@ async def bench_link_stream(rate_hz: float, seconds: float) -> dict[str, float]:
             arrivals = recv.arrivals_ns()
     finally:
         recv.close()
-    return period_stats(arrivals, rate_hz)
+    return wire_stats(arrivals, rate_hz)
 
 
 def bench_naive_stream(rate_hz: float, seconds: float) -> dict[str, float]:
@@ -149,7 +171,7 @@ def bench_naive_stream(rate_hz: float, seconds: float) -> dict[str, float]:
     finally:
         sock.close()
         recv.close()
-    return period_stats(arrivals, rate_hz)
+    return wire_stats(arrivals, rate_hz)
 
 
 def bench_sleep_floor(rate_hz: float, seconds: float) -> dict[str, float]:
@@ -210,8 +232,12 @@ def main() -> int:
     parser.add_argument("--commands", type=int, default=40, help="commands for the latency measurement")
     args = parser.parse_args()
 
-    print("setpoint stream, measured at the receiver over UDP loopback (period error = |period - 1/rate|)")
-    print(f"{'sender':<28}{'target Hz':>10}{'achieved Hz':>13}{'p50 ms':>9}{'p99 ms':>9}{'max ms':>9}")
+    print("setpoint stream over UDP loopback, period error = |period - 1/rate| from kernel receive stamps;")
+    print("'woken p99' is the same from when the receiving process woke up (adds its scheduling delay)")
+    print(
+        f"{'sender':<28}{'target Hz':>10}{'achieved Hz':>13}{'p50 ms':>9}{'p99 ms':>9}{'max ms':>9}"
+        f"{'woken p99':>11}"
+    )
     for rate in (50.0, 100.0, 200.0):
         ours = asyncio.run(bench_link_stream(rate, args.seconds))
         base = bench_naive_stream(rate, args.seconds)
@@ -222,8 +248,10 @@ def main() -> int:
             ("bare sleep loop (floor)", floor),
         )
         for name, r in rows:
+            woken = f"{r['app_p99_ms']:>11.3f}" if "app_p99_ms" in r else f"{'-':>11}"
             print(
                 f"{name:<28}{rate:>10.0f}{r['rate_hz']:>13.2f}{r['p50_ms']:>9.3f}{r['p99_ms']:>9.3f}{r['max_ms']:>9.3f}"
+                + woken
             )
     print()
     c = asyncio.run(bench_commands(args.commands))
