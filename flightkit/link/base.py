@@ -9,7 +9,10 @@ and :class:`~flightkit.link.mavsdk_link.MavsdkLink` (MAVSDK), and config alone p
 from __future__ import annotations
 
 import enum
+import inspect
 import math
+import sys
+import typing
 from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Protocol, Self, runtime_checkable
@@ -217,8 +220,28 @@ class Telemetry:
         return np.asarray(self.pos_local_enu_m, dtype=np.float64)
 
 
+class _StaticProtocolMeta(type(Protocol)):  # type: ignore[misc]
+    """Protocol metaclass whose ``isinstance`` looks members up without running them.
+
+    Python 3.11's runtime-checkable protocols test each member with ``hasattr``, which
+    evaluates properties: a link whose ``info`` raises LinkError before ``connect()`` would
+    make ``isinstance(link, VehicleLink)`` raise instead of answering. Python 3.12 and later
+    look members up statically (``inspect.getattr_static``); this does the same on 3.11.
+    """
+
+    def __instancecheck__(cls, instance: object) -> bool:
+        if sys.version_info >= (3, 12) or not cls.__dict__.get("_is_protocol", False):
+            return bool(super().__instancecheck__(instance))
+        missing = object()
+        for name in typing._get_protocol_attrs(cls):  # type: ignore[attr-defined]
+            value = inspect.getattr_static(instance, name, missing)
+            if value is missing or (callable(getattr(cls, name, None)) and value is None):
+                return False
+        return True
+
+
 @runtime_checkable
-class VehicleLink(Protocol):
+class VehicleLink(Protocol, metaclass=_StaticProtocolMeta):
     """A connection to one autopilot.
 
     Use as an async context manager (``async with link:``): entering connects and waits for

@@ -10,7 +10,8 @@ differently:
 * ArduCopter numbers its modes (GUIDED = 4, LOITER = 5, LAND = 9, BRAKE = 17) and
   MAV_CMD_DO_SET_MODE takes ``param1 = base_mode``, ``param2 = number``.
 
-Both link backends and the simulator use these tables, so a mode is spelled once.
+Both link backends and the simulator (:mod:`flightkit.sim.personality`) use these tables,
+so a mode is spelled once.
 
 Aliases: a :class:`~flightkit.link.base.FlightMode` the firmware does not have under that
 name resolves to its nearest equivalent when *setting* a mode (:func:`resolve_mode`):
@@ -39,6 +40,7 @@ __all__ = [
     "custom_mode_for",
     "decode_mode",
     "mode_from_command",
+    "px4_custom_mode",
     "resolve_mode",
     "set_mode_params",
 ]
@@ -49,22 +51,23 @@ MAV_AUTOPILOT_ARDUPILOTMEGA = 3
 MAV_AUTOPILOT_PX4 = 12
 
 
-def _px4(main: int, sub: int = 0) -> int:
-    return (main << 16) | (sub << 24)
+def px4_custom_mode(main_mode: int, sub_mode: int = 0) -> int:
+    """PX4's HEARTBEAT custom_mode: main mode in bits 16-23, sub mode in bits 24-31."""
+    return (main_mode << 16) | (sub_mode << 24)
 
 
 # PX4 main modes: MANUAL 1, ALTCTL 2, POSCTL 3, AUTO 4, ACRO 5, OFFBOARD 6, STABILIZED 7.
 # AUTO sub-modes: READY 1, TAKEOFF 2, LOITER 3, MISSION 4, RTL 5, LAND 6.
 PX4_MODES: dict[FlightMode, int] = {
-    FlightMode.MANUAL: _px4(1),
-    FlightMode.ALTCTL: _px4(2),
-    FlightMode.POSCTL: _px4(3),
-    FlightMode.OFFBOARD: _px4(6),
-    FlightMode.STABILIZED: _px4(7),
-    FlightMode.TAKEOFF: _px4(4, 2),
-    FlightMode.HOLD: _px4(4, 3),
-    FlightMode.RTL: _px4(4, 5),
-    FlightMode.LAND: _px4(4, 6),
+    FlightMode.MANUAL: px4_custom_mode(1),
+    FlightMode.ALTCTL: px4_custom_mode(2),
+    FlightMode.POSCTL: px4_custom_mode(3),
+    FlightMode.OFFBOARD: px4_custom_mode(6),
+    FlightMode.STABILIZED: px4_custom_mode(7),
+    FlightMode.TAKEOFF: px4_custom_mode(4, 2),
+    FlightMode.HOLD: px4_custom_mode(4, 3),
+    FlightMode.RTL: px4_custom_mode(4, 5),
+    FlightMode.LAND: px4_custom_mode(4, 6),
 }
 
 # ArduCopter mode numbers (ArduCopter/mode.h).
@@ -159,7 +162,7 @@ def decode_mode(autopilot: Autopilot, base_mode: int, custom_mode: int) -> Fligh
         main = (custom_mode >> 16) & 0xFF
         sub = (custom_mode >> 24) & 0xFF
         # Non-AUTO main modes carry no sub-mode; ignore stray bits there.
-        key = _px4(main, sub) if main == 4 else _px4(main)
+        key = px4_custom_mode(main, sub) if main == 4 else px4_custom_mode(main)
         return _REVERSE[autopilot].get(key, FlightMode.UNKNOWN)
     return _REVERSE[autopilot].get(custom_mode, FlightMode.UNKNOWN)
 
@@ -168,7 +171,7 @@ def mode_from_command(autopilot: Autopilot, params: tuple[float, float, float]) 
     """Decode MAV_CMD_DO_SET_MODE param1..3 (for simulators); UNKNOWN if not in the table."""
     base, p2, p3 = (int(p) for p in params)
     if autopilot is Autopilot.PX4:
-        custom = _px4(p2, p3 if p2 == 4 else 0)
+        custom = px4_custom_mode(p2, p3 if p2 == 4 else 0)
     else:
         custom = p2
     return decode_mode(autopilot, base, custom)

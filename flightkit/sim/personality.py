@@ -6,6 +6,10 @@ modes, take-off, landing and setpoint handling; what differs between PX4 and Ard
 texts it sends, the parameters it exposes, how long things take) lives here, in a
 :class:`Personality`. The values come from the firmware documentation and from runs of
 PX4 1.14 SITL and ArduCopter 4.7 SITL (see ``/work/shared/FACTS.md`` and ``docs/sim.md``).
+
+The custom-mode numbers are not repeated here: they are the link's own tables
+(:data:`~flightkit.link.modes.PX4_MODES`, :data:`~flightkit.link.modes.ARDUPILOT_COPTER_MODES`),
+so the simulator and the backends cannot disagree on a mode.
 """
 
 from __future__ import annotations
@@ -18,6 +22,13 @@ from types import MappingProxyType
 
 from flightkit.config import Autopilot
 from flightkit.link.base import FlightMode
+from flightkit.link.modes import (
+    ARDUPILOT_COPTER_MODES,
+    MAV_AUTOPILOT_ARDUPILOTMEGA,
+    MAV_AUTOPILOT_PX4,
+    PX4_MODES,
+    px4_custom_mode,
+)
 
 __all__ = [
     "ARDUPILOT",
@@ -29,10 +40,6 @@ __all__ = [
     "personality_for",
     "px4_custom_mode",
 ]
-
-# MAV_AUTOPILOT values
-MAV_AUTOPILOT_ARDUPILOTMEGA = 3
-MAV_AUTOPILOT_PX4 = 12
 
 # MAV_FRAME values accepted by SET_POSITION_TARGET_LOCAL_NED
 MAV_FRAME_LOCAL_NED = 1
@@ -67,27 +74,6 @@ class LossAction(enum.Enum):
     KEEP_THEN_BRAKE = (
         "keep_then_brake"  # ArduPilot: keep the last velocity GUID_TIMEOUT, then brake, stay GUIDED
     )
-
-
-# PX4 main / sub modes (px4_custom_mode.h)
-PX4_MAIN_MANUAL = 1
-PX4_MAIN_ALTCTL = 2
-PX4_MAIN_POSCTL = 3
-PX4_MAIN_AUTO = 4
-PX4_MAIN_ACRO = 5
-PX4_MAIN_OFFBOARD = 6
-PX4_MAIN_STABILIZED = 7
-PX4_SUB_AUTO_READY = 1
-PX4_SUB_AUTO_TAKEOFF = 2
-PX4_SUB_AUTO_LOITER = 3
-PX4_SUB_AUTO_MISSION = 4
-PX4_SUB_AUTO_RTL = 5
-PX4_SUB_AUTO_LAND = 6
-
-
-def px4_custom_mode(main_mode: int, sub_mode: int = 0) -> int:
-    """PX4's HEARTBEAT custom_mode: main mode in bits 16-23, sub mode in bits 24-31."""
-    return (main_mode << 16) | (sub_mode << 24)
 
 
 @dataclass(frozen=True, slots=True)
@@ -176,19 +162,7 @@ class Personality:
 PX4 = Personality(
     autopilot=Autopilot.PX4,
     mav_autopilot=MAV_AUTOPILOT_PX4,
-    custom_modes=MappingProxyType(
-        {
-            FlightMode.MANUAL: px4_custom_mode(PX4_MAIN_MANUAL),
-            FlightMode.ALTCTL: px4_custom_mode(PX4_MAIN_ALTCTL),
-            FlightMode.POSCTL: px4_custom_mode(PX4_MAIN_POSCTL),
-            FlightMode.OFFBOARD: px4_custom_mode(PX4_MAIN_OFFBOARD),
-            FlightMode.STABILIZED: px4_custom_mode(PX4_MAIN_STABILIZED),
-            FlightMode.TAKEOFF: px4_custom_mode(PX4_MAIN_AUTO, PX4_SUB_AUTO_TAKEOFF),
-            FlightMode.HOLD: px4_custom_mode(PX4_MAIN_AUTO, PX4_SUB_AUTO_LOITER),
-            FlightMode.RTL: px4_custom_mode(PX4_MAIN_AUTO, PX4_SUB_AUTO_RTL),
-            FlightMode.LAND: px4_custom_mode(PX4_MAIN_AUTO, PX4_SUB_AUTO_LAND),
-        }
-    ),
+    custom_modes=MappingProxyType(PX4_MODES),
     boot_mode=FlightMode.POSCTL,
     setpoint_mode=FlightMode.OFFBOARD,
     hold_mode=FlightMode.HOLD,
@@ -263,18 +237,7 @@ PX4 = Personality(
 ARDUPILOT = Personality(
     autopilot=Autopilot.ARDUPILOT,
     mav_autopilot=MAV_AUTOPILOT_ARDUPILOTMEGA,
-    custom_modes=MappingProxyType(
-        {
-            FlightMode.STABILIZED: 0,
-            FlightMode.ALTCTL: 2,
-            FlightMode.GUIDED: 4,
-            FlightMode.LOITER: 5,
-            FlightMode.RTL: 6,
-            FlightMode.LAND: 9,
-            FlightMode.POSCTL: 16,  # POSHOLD
-            FlightMode.BRAKE: 17,
-        }
-    ),
+    custom_modes=MappingProxyType(ARDUPILOT_COPTER_MODES),
     boot_mode=FlightMode.STABILIZED,
     setpoint_mode=FlightMode.GUIDED,
     hold_mode=FlightMode.GUIDED,
