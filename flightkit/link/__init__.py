@@ -7,7 +7,7 @@ Pick a backend from config with :func:`open_link`::
         await link.arm()
 
 ``link.backend = "pymavlink"`` gives :class:`~flightkit.link.mavlink.MavlinkLink`,
-``"mavsdk"`` gives :class:`~flightkit.link.mavsdk_link.MavsdkLink`. Both are imported only
+``"mavsdk"`` gives :class:`~flightkit.link.mavsdk.MavsdkLink`. Both are imported only
 when chosen, so importing :mod:`flightkit.link` stays cheap.
 """
 
@@ -35,7 +35,7 @@ def open_link(cfg: LinkConfig, autopilot: Autopilot, clock: Clock | None = None)
     """
     clock = clock if clock is not None else WallClock()
     if cfg.backend is LinkBackend.MAVSDK:
-        from flightkit.link.mavsdk_link import MavsdkLink
+        from flightkit.link.mavsdk import MavsdkLink
 
         return MavsdkLink(cfg, autopilot, clock)
     from flightkit.link.mavlink import MavlinkLink

@@ -3,7 +3,7 @@
 Everything above ``flightkit/link/`` speaks in the world frame (ENU, z up) and the body
 frame (FLU); the backends translate to MAVLink's NED/FRD at the wire. Two backends
 implement :class:`VehicleLink`: :class:`~flightkit.link.mavlink.MavlinkLink` (pymavlink)
-and :class:`~flightkit.link.mavsdk_link.MavsdkLink` (MAVSDK), and config alone picks one.
+and :class:`~flightkit.link.mavsdk.MavsdkLink` (MAVSDK), and config alone picks one.
 """
 
 from __future__ import annotations

@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation
 from flightkit.errors import EndpointError, LinkError
 from flightkit.frames import Transform, frd_to_flu, ned_to_enu, world_to_body_yaw
 from flightkit.link.base import ExternalPose, SetpointFrame, VelocitySetpoint
-from flightkit.link.mavsdk_link import (
+from flightkit.link.mavsdk import (
     external_pose_to_ned,
     mavsdk_url,
     pose_covariance_upper,

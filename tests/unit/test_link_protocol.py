@@ -40,3 +40,12 @@ def test_a_method_set_to_none_blocks_the_match() -> None:
     link = MavlinkLink(LinkConfig(url="udpin://127.0.0.1:0"), Autopilot.PX4, WallClock())
     link.arm = None  # type: ignore[assignment,method-assign]
     assert not isinstance(link, VehicleLink)
+
+
+def test_command_results_are_named_as_mavlink_defines_them() -> None:
+    from flightkit.link.mavlink.encoding import result_name
+
+    assert result_name(2) == "DENIED"
+    assert result_name(6) == "CANCELLED"  # missing from pymavlink 2.4's table
+    assert result_name(9) == "COMMAND_UNSUPPORTED_MAV_FRAME"
+    assert result_name(42) == "MAV_RESULT_42"

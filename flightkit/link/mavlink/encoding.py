@@ -86,8 +86,17 @@ def cmd_name(command: int) -> str:
     return _enum_name("MAV_CMD", command, "")
 
 
+# MAV_RESULT as the MAVLink common.xml of today defines it; pymavlink 2.4's table lacks
+# CANCELLED (6) and calls 9 ENUM_END.
+_MAV_RESULT = (
+    "ACCEPTED", "TEMPORARILY_REJECTED", "DENIED", "UNSUPPORTED", "FAILED", "IN_PROGRESS", "CANCELLED",
+    "COMMAND_LONG_ONLY", "COMMAND_INT_ONLY", "COMMAND_UNSUPPORTED_MAV_FRAME",
+)
+
+
 def result_name(result: int) -> str:
-    return _enum_name("MAV_RESULT", result, "MAV_RESULT_")
+    """``"DENIED"`` for 2; ``"MAV_RESULT_42"`` for a code MAVLink does not define."""
+    return _MAV_RESULT[result] if 0 <= result < len(_MAV_RESULT) else f"MAV_RESULT_{result}"
 
 
 

@@ -1,10 +1,11 @@
-"""Pure conversions of the MAVSDK backend: connection strings, setpoints and poses in MAVSDK's terms.
+"""Pure conversions of the MAVSDK backend: flightkit values in MAVSDK's terms.
 
 :func:`mavsdk_url` turns our endpoint strings into MAVSDK's; :func:`setpoint_to_mavsdk`
 chooses between ``VelocityNedYaw`` and ``VelocityBodyYawspeed`` for a flightkit setpoint (ENU/FLU
 in, NED/FRD out, through :mod:`flightkit.frames`); :func:`external_pose_to_ned` and
 :func:`pose_covariance_upper` prepare a mocap/VO pose for the mocap plugin. No MAVSDK import
 and no IO here, so they are unit-tested on their own (``tests/unit/test_link_mavsdk_conversions.py``).
+This is the MAVSDK counterpart of :mod:`flightkit.link.mavlink.encoding`.
 """
 
 from __future__ import annotations
@@ -139,7 +140,7 @@ def setpoint_to_mavsdk(sp: VelocitySetpoint, yaw_local_rad: float) -> _NedComman
     Args:
         sp: the setpoint (ENU world or FLU body).
         yaw_local_rad: the vehicle's current heading in the autopilot's local frame (ENU),
-            used when the frame has to change (see the module docstring); NaN if unknown.
+            used when the frame has to change (see :mod:`flightkit.link.mavsdk.stream`); NaN if unknown.
 
     Raises:
         LinkError: the frame has to change and the heading is not known yet.
