@@ -155,21 +155,29 @@ def run_baseline(
     stop: int | None = None,
     progress: Callable[[int, int], None] | None = None,
     init_from_groundtruth: bool = False,
+    sensor: str = "auto",
 ) -> VoResult:
     """Run the lab's original pipeline over a sequence (every ``frame_skip``-th frame).
 
-    Stereo sequences use the left/right pair for depth, RGB-D sequences the depth image.
+    Stereo sequences use the left/right pair for depth, RGB-D sequences the depth image;
+    ``sensor`` (``"auto"``, ``"depth"`` or ``"stereo"``) picks one on a sequence with both (the
+    synthetic ones), so the stereo method can be compared with the lab's stereo pipeline.
     The output holds the processed frames only; ``init_from_groundtruth`` starts at the
     first frame's ground-truth pose (as :func:`~estimation.pipeline.run_vo`).
 
     Raises:
-        EstimationError: the sequence has neither depth nor stereo.
+        EstimationError: the sequence has neither depth nor stereo, or not the ``sensor`` asked for.
     """
     if frame_skip < 1:
         raise EstimationError(f"frame_skip must be >= 1, got {frame_skip}")
-    if sequence.depth_intrinsics is not None:
+    if sensor not in ("auto", "depth", "stereo"):
+        raise EstimationError(f"baseline sensor must be 'auto', 'depth' or 'stereo', got {sensor!r}")
+    has_depth, has_stereo = sequence.depth_intrinsics is not None, bool(sequence.baseline_m)
+    if sensor == "depth" and not has_depth or sensor == "stereo" and not has_stereo:
+        raise EstimationError(f"the baseline was asked for {sensor} input, and {sequence.name} has none")
+    if has_depth and sensor != "stereo":
         method = Method.RGBD_PNP
-    elif sequence.baseline_m:
+    elif has_stereo:
         method = Method.STEREO
     else:
         raise EstimationError(f"the baseline needs depth or stereo, and {sequence.name} has neither")

@@ -305,6 +305,7 @@ def pnp(
     min_inliers: int = 8,
     refine: bool = True,
     guess_T_cur_ref: F64 | None = None,
+    ransac_kernel: str | None = None,
 ) -> Motion:
     """Pose of the current camera from reference-frame 3D points and their current pixels.
 
@@ -318,6 +319,10 @@ def pnp(
         ransac: reject outliers with RANSAC (threshold ``reproj_px``).
         refine: polish the inlier fit with ``cv2.solvePnPRefineLM``.
         guess_T_cur_ref: initial guess for the iterative method (e.g. constant velocity).
+        ransac_kernel: solver of RANSAC's minimal samples: None (``method`` itself, as
+            OpenCV does: 5-point samples), ``"p3p"`` or ``"ap3p"`` (4-point samples, about 3x
+            cheaper per hypothesis). The fit on all inliers is then ``method`` (for
+            ``"iterative"``: Levenberg-Marquardt from the RANSAC pose).
 
     Returns:
         :class:`Motion`; ``ok`` is False with fewer than ``min_inliers`` inliers.
@@ -334,7 +339,12 @@ def pnp(
     if n < max(6, min_inliers):
         return _failed(n)
     flags = PNP_METHODS[method]
-    use_guess = guess_T_cur_ref is not None and method == "iterative"
+    if ransac_kernel not in (None, "p3p", "ap3p"):
+        raise EstimationError(f"unknown PnP RANSAC kernel {ransac_kernel!r}; use None, 'p3p' or 'ap3p'")
+    kernel_flags = flags if ransac_kernel is None else (
+        cv2.SOLVEPNP_P3P if ransac_kernel == "p3p" else cv2.SOLVEPNP_AP3P
+    )
+    use_guess = guess_T_cur_ref is not None and method == "iterative" and ransac_kernel is None
     rvec0 = tvec0 = None
     if use_guess:
         assert guess_T_cur_ref is not None
@@ -353,11 +363,15 @@ def pnp(
                 iterationsCount=max_iters,
                 reprojectionError=reproj_px,
                 confidence=confidence,
-                flags=flags,
+                flags=kernel_flags,
             )
             mask = np.zeros(n, dtype=bool)
             if ok and inl is not None:
                 mask[inl.ravel()] = True
+            if ok and kernel_flags != flags and method != "iterative" and np.count_nonzero(mask) >= 6:
+                ok, rvec, tvec = cv2.solvePnP(obj[mask], img[mask], Km, None, flags=flags)
+            elif ok and kernel_flags != flags and not refine:
+                rvec, tvec = cv2.solvePnPRefineLM(obj[mask], img[mask], Km, None, rvec, tvec)
         else:
             ok, rvec, tvec = cv2.solvePnP(
                 obj, img, Km, None, rvec=rvec0, tvec=tvec0, useExtrinsicGuess=use_guess, flags=flags
@@ -379,6 +393,12 @@ def pnp(
             return _failed(n)
     R = cv2.Rodrigues(rvec)[0]
     return Motion(make_T(R, tvec.ravel()), mask, True)
+
+
+_GN_STOP = 1e-10
+"""refine_pose stops when the squared step (m^2 + rad^2) falls below this: a 10 um / 10 urad
+step. (1e-8 stopped a step early and cost 3 mm of ATE on the synthetic circle; 1e-14 ran
+every iteration for nothing.)"""
 
 
 def refine_pose(
@@ -463,7 +483,7 @@ def refine_pose(
         dT[:3, :3] = cv2.Rodrigues(xi[3:])[0]
         dT[:3, 3] = xi[:3]
         T = dT @ T
-        if float(xi @ xi) < 1e-14:
+        if float(xi @ xi) < _GN_STOP:
             break
     return T
 

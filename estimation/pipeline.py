@@ -17,7 +17,9 @@ Live (one frame at a time, e.g. from the bus; publish ``FramePose`` from ``on_po
 
 Methods (``Method``):
     ``rgbd-pnp``        keyframe 3D points (depth) -> current pixels, PnP + RANSAC
-    ``rgbd-essential``  5-point essential matrix keyframe -> current, metric scale from depth
+    ``rgbd-essential``  5-point essential matrix keyframe -> current, metric scale from depth;
+                        kept when it reprojects the keyframe's 3D points (a floor makes the
+                        5-point solution ambiguous), least squares + depth polish on those
     ``rgbd-kabsch``     3D-3D (depth in both frames), Kabsch in a vectorised RANSAC
     ``stereo``          keyframe 3D points (sparse stereo) -> current pixels, PnP (RANSAC or
                         rigidity max-clique inliers)
@@ -62,6 +64,7 @@ from estimation.motion import (
     Motion,
     essential_metric,
     invert,
+    make_T,
     pnp,
     ransac_rigid,
     refine_pose,
@@ -118,9 +121,20 @@ class VoOptions:
         max_features: corners kept per keyframe.
         cell_px: grid cell of the corner detector (0: chosen from image size and budget).
         fast_threshold: FAST threshold.
-        klt_win_px, klt_levels: LK window and pyramid levels.
+        klt_win_px, klt_levels: LK window and pyramid levels (0: 9 px up to 400 px wide,
+            else 11 px; None: 3 levels). LK's cost grows with the window's area (9 px costs
+            0.6x of 11 px) and is about the same on every level; 3 levels reach ~30 px of
+            motion without a prior (2 levels lost tracks beyond ~10 px at 9 px).
+        klt_back_levels: pyramid levels of the backward (checking) pass of the tracker (at
+            most ``klt_levels``); it starts at the answer, so it needs no coarse levels.
+        klt_iters: LK iterations per pyramid level at most (each also stops on a 0.03 px step).
+        stereo_win_px: LK window of the left-right (disparity) search (0: the tracking window).
         fb_max_px: forward-backward tolerance of tracks.
-        pnp_method: ``"iterative"``, ``"epnp"`` or ``"sqpnp"``.
+        pnp_method: ``"iterative"``, ``"epnp"`` or ``"sqpnp"``: the fit on all inliers.
+        pnp_kernel: the solver of PnP RANSAC's minimal samples: None (``pnp_method`` itself,
+            OpenCV's default), ``"ap3p"`` or ``"p3p"`` (4 points; RANSAC alone ~2.5x cheaper,
+            0.3 vs 0.8 ms for 200 points, but no faster end to end within this machine's
+            noise, and KITTI's ATE spread was wider).
         reproj_px: PnP RANSAC threshold.
         inliers: ``"ransac"`` or ``"rigidity"`` (stereo: max-clique of rigid pairs first).
         kabsch_threshold_m: rgbd-kabsch inlier threshold at 1 m (grows with depth squared).
@@ -157,10 +171,14 @@ class VoOptions:
     max_features: int = 300
     cell_px: int = 0
     fast_threshold: int = 20
-    klt_win_px: int = 11
-    klt_levels: int = 3
+    klt_win_px: int = 0
+    klt_levels: int | None = None
+    klt_back_levels: int = 1
+    klt_iters: int = 10
+    stereo_win_px: int = 0
     fb_max_px: float = 1.0
     pnp_method: str = "iterative"
+    pnp_kernel: str | None = None
     reproj_px: float = 3.0
     inliers: str = "ransac"
     kabsch_threshold_m: float = 0.02
@@ -191,16 +209,25 @@ class VoOptions:
             raise EstimationError(
                 f"VoOptions.pnp_method is {self.pnp_method!r}; use iterative, epnp or sqpnp"
             )
+        if self.pnp_kernel not in (None, "p3p", "ap3p"):
+            raise EstimationError(f"VoOptions.pnp_kernel is {self.pnp_kernel!r}; use 'ap3p', 'p3p' or None")
         if self.flow_depth not in ("altitude", "stereo"):
             raise EstimationError(f"VoOptions.flow_depth is {self.flow_depth!r}; use 'altitude' or 'stereo'")
         if self.max_features < 20:
             raise EstimationError(
                 f"VoOptions.max_features is {self.max_features}; use at least 20 (300 is typical)"
             )
-        if self.klt_win_px < 5 or self.klt_levels < 0:
+        if (
+            0 < self.klt_win_px < 5
+            or self.klt_win_px < 0
+            or (self.klt_levels is not None and self.klt_levels < 0)
+            or self.klt_back_levels < 0
+            or self.klt_iters < 1
+        ):
             raise EstimationError(
-                f"VoOptions.klt_win_px={self.klt_win_px}, klt_levels={self.klt_levels}; "
-                "use a window >= 5 px and levels >= 0"
+                f"VoOptions.klt_win_px={self.klt_win_px}, klt_levels={self.klt_levels}, "
+                f"klt_back_levels={self.klt_back_levels}, klt_iters={self.klt_iters}; use a window "
+                ">= 5 px (0: automatic), levels >= 0 (None: automatic) and at least 1 iteration"
             )
         if not 0 < self.min_depth_m < self.max_depth_m:
             raise EstimationError(
@@ -386,6 +413,12 @@ class VisualOdometry:
         self.T_world_cam = (T_world_camera0 or Transform.identity()).as_matrix()
         self.on_pose = on_pose
         w, h = intrinsics.width, intrinsics.height
+        # LK window and pyramid from the image size (the options may fix them).
+        small = w <= 400
+        self.klt_win = self.opts.klt_win_px or (9 if small else 11)
+        self.klt_levels = 3 if self.opts.klt_levels is None else self.opts.klt_levels
+        self.klt_back_levels = min(self.opts.klt_back_levels, self.klt_levels)
+        self.stereo_win = self.opts.stereo_win_px or self.klt_win
         cell = self.opts.cell_px or max(12, int(math.sqrt(w * h / self.opts.max_features) * 1.1))
         self.grid = GridDetector(self.opts.max_features, cell, self.opts.fast_threshold, border_px=8)
         self.orb = DescriptorExtractor("orb", 1000)
@@ -486,8 +519,8 @@ class VisualOdometry:
             px,
             init_disp,
             fb_max_px=self.opts.fb_max_px if self.opts.stereo_fb_check else None,
-            win_px=self.opts.klt_win_px,
-            levels=self.opts.klt_levels,
+            win_px=self.stereo_win,
+            levels=self.klt_levels,
             min_disparity_px=self.opts.min_disparity_px,
         )
         zmax = self._max_stereo_depth_m() if max_depth_m is None else max_depth_m
@@ -668,6 +701,7 @@ class VisualOdometry:
             reproj_px=self.opts.reproj_px * 1.5,
             min_inliers=self.opts.min_inliers,
             guess_T_cur_ref=guess,
+            ransac_kernel=self.opts.pnp_kernel,
         )
         return m if m.ok else None
 
@@ -687,6 +721,7 @@ class VisualOdometry:
         if self.method is Method.RGBD_ESSENTIAL:
             und_kf = self._undistort(px_kf)
             parallax = float(np.median(np.linalg.norm(und_cur - und_kf, axis=1)))
+            m = Motion(guess, np.zeros(len(px_cur), dtype=bool), False)
             if parallax >= o.essential_min_parallax_px:
                 m = essential_metric(
                     und_kf,
@@ -696,17 +731,55 @@ class VisualOdometry:
                     threshold_px=o.essential_threshold_px,
                     min_inliers=o.min_inliers,
                 )
-                if m.ok:
-                    return m
-            return pnp(
-                X_kf,
-                und_cur,
-                self.K,
-                method=o.pnp_method,
-                reproj_px=o.reproj_px,
-                min_inliers=o.min_inliers,
-                guess_T_cur_ref=guess,
-            )
+            if m.ok:
+                # With little parallax or a mostly planar scene (the floor) the 5-point RANSAC
+                # can settle on a wrong motion that a few points satisfy. The keyframe's depth
+                # tells: the right motion (with its metric scale) also reprojects the 3D points
+                # of most tracks, which passed the forward-backward check. The points that
+                # reproject are the inliers (depth edges and holes, invisible to the epipolar
+                # test, drop out here).
+                agree = self._reproj_err2(m.T_cur_ref, X_kf, und_cur) < (2.0 * o.reproj_px) ** 2
+                if np.count_nonzero(agree) < max(o.min_inliers, 0.5 * len(px_cur)):
+                    m = Motion(guess, np.zeros(len(px_cur), dtype=bool), False)
+                else:
+                    # Levenberg-Marquardt on the reprojection of those points from the 5-point
+                    # motion (as PnP's final fit), inliers re-selected, before the polish below.
+                    rvec = cv2.Rodrigues(m.T_cur_ref[:3, :3])[0]
+                    tvec = m.T_cur_ref[:3, 3].reshape(3, 1).copy()
+                    rvec, tvec = cv2.solvePnPRefineLM(X_kf[agree], und_cur[agree], self.K, None, rvec, tvec)
+                    T_lm = make_T(cv2.Rodrigues(rvec)[0], tvec.ravel())
+                    mask = agree & (self._reproj_err2(T_lm, X_kf, und_cur) < o.reproj_px**2)
+                    m = (
+                        Motion(T_lm, mask, True)
+                        if np.count_nonzero(mask) >= o.min_inliers
+                        else Motion(m.T_cur_ref, agree, True)
+                    )
+            if not m.ok:
+                m = pnp(
+                    X_kf,
+                    und_cur,
+                    self.K,
+                    method=o.pnp_method,
+                    reproj_px=o.reproj_px,
+                    min_inliers=o.min_inliers,
+                    guess_T_cur_ref=guess,
+                    ransac_kernel=o.pnp_kernel,
+                )
+            if not (m.ok and o.refine_with_depth):
+                return m
+            # Then the same polish as PnP's: reprojection of the keyframe points plus this
+            # frame's depth (``refine_with_depth``), and inliers re-selected on the result.
+            mask = m.inliers.copy()
+            T = self._refine(m.T_cur_ref, X_kf[mask], px_cur[mask], und_cur[mask], depth_m, pyr, right_gray)
+            refined = mask & (self._reproj_err2(T, X_kf, und_cur) < o.reproj_px**2)
+            if np.count_nonzero(refined) < o.min_inliers:
+                self._meas = None
+                return m
+            if self._meas is not None:
+                self._meas = (np.flatnonzero(mask)[self._meas[0]], self._meas[1])
+                keep = refined[self._meas[0]]
+                self._meas = (self._meas[0][keep], self._meas[1][keep])
+            return Motion(T, refined, True)
         if self.method is Method.RGBD_KABSCH:
             assert depth_m is not None
             z = self._depth_at(depth_m, px_cur)
@@ -744,6 +817,7 @@ class VisualOdometry:
             reproj_px=o.reproj_px,
             min_inliers=o.min_inliers,
             guess_T_cur_ref=guess,
+            ransac_kernel=o.pnp_kernel,
         )
         mask = np.zeros(len(px_cur), dtype=bool)
         mask[idx] = m.inliers
@@ -753,6 +827,15 @@ class VisualOdometry:
             if self._meas is not None:
                 self._meas = (np.flatnonzero(mask)[self._meas[0]], self._meas[1])
         return Motion(T, mask, m.ok)
+
+    def _reproj_err2(self, T_cur_ref: F64, X_ref: F64, und_cur: F64) -> F64:
+        """Squared reprojection error (px^2) of reference points in the current (undistorted)
+        image; infinite behind the camera."""
+        Xc = X_ref @ T_cur_ref[:3, :3].T + T_cur_ref[:3, 3]
+        z = np.maximum(Xc[:, 2], 1e-6)
+        du = self.intr.fx * Xc[:, 0] / z + self.intr.cx - und_cur[:, 0]
+        dv = self.intr.fy * Xc[:, 1] / z + self.intr.cy - und_cur[:, 1]
+        return np.where(Xc[:, 2] > 1e-6, du * du + dv * dv, np.inf)
 
     def _refine(
         self,
@@ -777,7 +860,7 @@ class VisualOdometry:
                 px,
                 init,
                 fb_max_px=None,
-                win_px=self.opts.klt_win_px,
+                win_px=self.stereo_win,
                 levels=1,  # the predicted disparity is close: a shallow pyramid is enough
                 min_disparity_px=self.opts.min_disparity_px,
             )
@@ -858,7 +941,15 @@ class VisualOdometry:
         guess_px, vis = self._project(T_pred_cur_kf, self.kf_X)
         guess = np.where(vis[:, None], guess_px, self.trk_px)
         px, ok = track_klt(
-            self.prev_pyr, pyr, self.trk_px, o.fb_max_px, o.klt_win_px, o.klt_levels, guess=guess
+            self.prev_pyr,
+            pyr,
+            self.trk_px,
+            o.fb_max_px,
+            self.klt_win,
+            self.klt_levels,
+            guess=guess,
+            back_levels=self.klt_back_levels,
+            max_iters=o.klt_iters,
         )
         h, w = gray.shape
         ok &= (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
@@ -1065,7 +1156,16 @@ class VisualOdometry:
             self.prev_depth = depth_m
             return self._emit(stamp_ns, 0, Quality.INIT, True, timer)
         dt_s = max((stamp_ns - self.prev_stamp_ns) * 1e-9, 1e-4)
-        px, ok = track_klt(self.prev_pyr, pyr, self.flow_pts, o.fb_max_px, o.klt_win_px, o.klt_levels)
+        px, ok = track_klt(
+            self.prev_pyr,
+            pyr,
+            self.flow_pts,
+            o.fb_max_px,
+            self.klt_win,
+            self.klt_levels,
+            back_levels=self.klt_back_levels,
+            max_iters=o.klt_iters,
+        )
         idx = np.flatnonzero(ok)
         timer.lap("track")
         quality = Quality.PREDICTED

@@ -121,6 +121,27 @@ def test_klt_tracks_a_shift_and_the_fb_check_drops_lost_points() -> None:
     assert ok[grid[:, 0] < 60].mean() < 0.1
 
 
+@pytest.mark.parametrize("back_levels", [0, 1, 3])
+def test_klt_backward_check_with_fewer_levels_still_drops_lost_points(back_levels: int) -> None:
+    """The backward pass starts at the old position, so a shallow pyramid confirms good tracks,
+    and points whose patch vanished (a flat strip) still fail to come back."""
+    big = texture(300, 400, seed=3)
+    prev = np.ascontiguousarray(big[20:260, 20:340])
+    cur = np.ascontiguousarray(big[26:266, 11:331])  # content moves by (+9, -6) px
+    cur[:, :80] = 128
+    grid = (
+        np.stack(np.meshgrid(np.arange(20, 300, 20), np.arange(20, 220, 20)), -1)
+        .reshape(-1, 2)
+        .astype(np.float32)
+    )
+    pts, ok = track_klt(prev, cur, grid, fb_max_px=0.5, win_px=9, levels=3, back_levels=back_levels, max_iters=10)
+    inside = grid[:, 0] > 110
+    assert ok[inside].mean() > 0.95
+    moved = (pts - grid)[ok & inside]
+    np.testing.assert_allclose(moved, np.broadcast_to([9.0, -6.0], moved.shape), atol=0.1)
+    assert ok[grid[:, 0] < 60].mean() < 0.1
+
+
 def test_stereo_altitude_from_row_consistent_orb_matches() -> None:
     big = texture(240, 400, seed=9)
     d = 16

@@ -132,15 +132,16 @@ def test_pnp_exact_without_noise(method: str) -> None:
     assert_motion(m.T_cur_ref, T, 1e-6, 1e-7)
 
 
+@pytest.mark.parametrize("kernel", [None, "ap3p", "p3p"])
 @pytest.mark.parametrize("method", sorted(PNP_METHODS))
-def test_pnp_ransac_rejects_half_outliers(method: str) -> None:
+def test_pnp_ransac_rejects_half_outliers(method: str, kernel: str | None) -> None:
     rng = np.random.default_rng(11)
     X = scene(200)
     T = true_motion()
     px = project(T, X) + rng.normal(0, 0.3, (200, 2))
     bad = rng.permutation(200)[:100]
     px[bad] = rng.uniform([0, 0], [640, 480], (100, 2))
-    m = pnp(X, px, K, method=method, reproj_px=2.0, max_iters=300)
+    m = pnp(X, px, K, method=method, reproj_px=2.0, max_iters=300, ransac_kernel=kernel)
     assert m.ok
     # A random pixel can land near the true projection by chance; allow a couple.
     assert m.inliers[bad].sum() <= 2
@@ -246,3 +247,41 @@ def test_vo_options_reject_bad_values() -> None:
         VoOptions(pnp_method="p3p")
     with pytest.raises(EstimationError, match="depth range"):
         VoOptions(min_depth_m=5.0, max_depth_m=1.0)
+    with pytest.raises(EstimationError, match="klt_win_px=3"):
+        VoOptions(klt_win_px=3)
+    with pytest.raises(EstimationError, match="klt_iters=0"):
+        VoOptions(klt_iters=0)
+    with pytest.raises(EstimationError, match="pnp_kernel"):
+        VoOptions(pnp_kernel="epnp")
+
+
+def test_lk_window_and_pyramid_follow_the_image_size_unless_set() -> None:
+    from estimation.pipeline import VisualOdometry, VoOptions
+    from flightkit.datasets.base import CameraIntrinsics
+
+    small = CameraIntrinsics(260.0, 260.0, 159.5, 119.5, 320, 240)
+    large = CameraIntrinsics(520.0, 520.0, 319.5, 239.5, 640, 480)
+    vo = VisualOdometry("stereo", small, baseline_m=0.1)
+    assert (vo.klt_win, vo.klt_levels, vo.klt_back_levels, vo.stereo_win) == (9, 3, 1, 9)
+    vo = VisualOdometry("stereo", large, baseline_m=0.1)
+    assert (vo.klt_win, vo.klt_levels, vo.klt_back_levels, vo.stereo_win) == (11, 3, 1, 11)
+    opts = VoOptions(klt_win_px=15, klt_levels=1, klt_back_levels=3, stereo_win_px=21)
+    vo = VisualOdometry("stereo", small, baseline_m=0.1, options=opts)
+    # The backward pass never uses more levels than the forward one.
+    assert (vo.klt_win, vo.klt_levels, vo.klt_back_levels, vo.stereo_win) == (15, 1, 1, 21)
+
+
+def test_refine_pose_stops_when_converged_at_the_full_answer() -> None:
+    from estimation.motion import refine_pose
+
+    rng = np.random.default_rng(5)
+    X = scene(150)
+    T = true_motion()
+    px = project(T, X) + rng.normal(0, 0.4, (150, 2))
+    Xc = X @ T[:3, :3].T + T[:3, 3]
+    disp = 500.0 * 0.1 / Xc[:, 2] + rng.normal(0, 0.1, 150)
+    start = make_T(Rotation.from_euler("x", 0.5, degrees=True).as_matrix() @ T[:3, :3], T[:3, 3] + 0.01)
+    quick = refine_pose(start, X, px, K, disp, 50.0)
+    full = refine_pose(start, X, px, K, disp, 50.0, iterations=50)
+    # Stopping on a small step leaves (far) less than a micrometre / microradian on the table.
+    assert_motion(quick, full, 1e-6, 1e-6)
