@@ -32,6 +32,7 @@ from trajectories.flightlog import FlightSummary, read_flight_log
 from trajectories.plan import Plan, load_plan
 from trajectories.runner import Status, fly_plan
 from trajectories.simulated import SimSession, sim_session
+from trajectories.supervisor import Action, Fault
 
 REPO = Path(__file__).resolve().parents[2]
 SPEED = 5.0
@@ -119,9 +120,29 @@ async def fly_with_fault(
 
 
 def kinds(summary: FlightSummary) -> list[str]:
-    """Fault kinds in order, without the one-cycle ``mocap_stale`` holds a starved 2-core machine
-    produces at 5x (a 40 ms wall-time stall is 0.2 s of sim time); the dropout tests check it."""
+    """Fault kinds in order, without ``mocap_stale`` holds.
+
+    On a loaded 2-core machine the mocap thread alone can wait 20-45 ms of wall time for a core
+    (measured), which is 0.1-0.22 s of sim time at 5x: the
+    supervisor then holds for a cycle, a correct and harmless reaction. So fault *sequences* are
+    compared without it, and each test checks its own fault's reaction; the dropout tests check
+    the stale hold directly.
+    """
     return [f.kind.value for f in summary.faults if f.kind.value != "mocap_stale"]
+
+
+def fault(summary: FlightSummary, kind: str) -> Fault:
+    """The first fault of ``kind`` (found by kind, not by position: a stale hold may follow it)."""
+    found = [f for f in summary.faults if f.kind.value == kind]
+    assert found, summary.format_table()
+    return found[0]
+
+
+def runs(t: np.ndarray, max_gap_s: float) -> list[np.ndarray]:
+    """Split sorted times into runs separated by gaps longer than ``max_gap_s``."""
+    if len(t) == 0:
+        return []
+    return np.split(t, np.flatnonzero(np.diff(t) > max_gap_s) + 1)
 
 
 def test_short_mocap_dropout_holds_then_resumes(tmp_path: Path) -> None:
@@ -132,15 +153,21 @@ def test_short_mocap_dropout_holds_then_resumes(tmp_path: Path) -> None:
     all_kinds = [f.kind.value for f in s.faults]
     assert "mocap_stale" in all_kinds and "mocap_lost" not in all_kinds
     assert s.laps_completed == 1
+    # the dropout's hold: the first stale fault after the injection, 0.2 s (the limit) into it
+    stale = next((f for f in s.faults if f.kind.value == "mocap_stale" and f.time_s >= run.injected_at_s), None)
+    assert stale is not None and 0.15 < stale.time_s - run.injected_at_s < 0.4, s.format_table()
     log = read_flight_log(tmp_path / "flight.csv")
     pat = log["phase"] == "pattern"
     held = pat & (log["action"] == "HOLD")
-    # held for about the dropout (0.6 s less the 0.2 s threshold), with zero velocity commanded
+    assert np.all(log["sp_vx_m_s"][held] == 0.0) and np.all(log["sp_vy_m_s"][held] == 0.0)  # zero velocity
+    # held for about the dropout (0.6 s less the 0.2 s threshold): the run of HOLD cycles that
+    # starts with that fault (any other one-cycle hold is load, see kinds())
     t_held = log["t_s"][held]
-    assert 0.25 < t_held.max() - t_held.min() < 0.6
-    assert np.all(log["sp_vx_m_s"][held] == 0.0) and np.all(log["sp_vy_m_s"][held] == 0.0)
+    hold = next(r for r in runs(t_held, 0.1) if r[0] >= run.injected_at_s)
+    assert hold[0] == pytest.approx(stale.time_s, abs=0.05)
+    assert 0.25 < hold[-1] - hold[0] < 0.6
     # then resumed: the pattern continued after the hold and finished its lap within bounds
-    assert np.any(pat & (log["action"] == "CONTINUE") & (log["t_s"] > t_held.max()))
+    assert np.any(pat & (log["action"] == "CONTINUE") & (log["t_s"] > hold[-1]))
     assert s.phase("pattern").max_error_m < 0.15
 
 
@@ -238,7 +265,7 @@ def test_pilot_mode_change_ends_the_script_without_fighting(
     assert s is not None
     assert s.outcome == "released", s.format_table()
     assert kinds(s) == ["pilot_takeover"]
-    assert pilot_mode.value in s.faults[-1].message
+    assert pilot_mode.value in fault(s, "pilot_takeover").message
     assert run.armed and run.height_m > 1.0  # still flying, in the pilot's hands
     assert run.session.lab.autopilot.mode is pilot_mode
 
@@ -318,8 +345,13 @@ def test_low_battery_lands(tmp_path: Path) -> None:
     s = run.summary
     assert s is not None
     assert s.outcome == "landed_early", s.format_table()
-    assert kinds(s) == ["battery_low"]
-    assert "12 %" in s.faults[-1].message
+    # it landed because of the battery: the only fault besides stale holds, reported with the
+    # charge, asking to land; the landing followed it and ended on the ground, disarmed
+    assert kinds(s) == ["battery_low"], s.format_table()
+    low = fault(s, "battery_low")
+    assert "12 %" in low.message and low.action is Action.LAND
+    assert low.time_s - run.injected_at_s < 0.8  # the next SYS_STATUS (2 Hz) and a control cycle
+    assert "mocap_lost" not in [f.kind.value for f in s.faults]
     assert s.phases[-1].name == "land"
     assert not run.armed and run.height_m < 0.05
 
@@ -368,7 +400,7 @@ def test_fly_command_lands_on_sigint(tmp_path: Path) -> None:
 
     summary = json.loads(out)
     assert summary["outcome"] == "landed_early"
-    assert [f["kind"] for f in summary["faults"]] == ["interrupted"]
+    assert [f["kind"] for f in summary["faults"] if f["kind"] != "mocap_stale"] == ["interrupted"]  # see kinds()
     assert summary["phases"][-1]["name"] == "land"
     data = read_flight_log(log)
     assert data["pos_z_m"][-1] < 0.15  # it came down under control before handing over the touchdown

@@ -10,8 +10,10 @@ Bounds were set from measured runs with margin (see docs/flying.md for the figur
 pattern RMS 5-10 mm on pymavlink on a quiet machine (18 mm under heavy load), ~30 mm on MAVSDK.
 
 On this shared 2-core machine a 5x-accelerated flight can miss its 0.2 s (sim) mocap deadline
-when the process is starved for ~40 ms of wall time; the supervisor then holds for a cycle, as
-it should. Such ``mocap_stale`` holds are tolerated here; any other fault fails the test.
+when the mocap thread alone waits ~40 ms of wall time for a core (measured: single-thread gaps of
+20-45 ms under load while the process as a whole ran); the supervisor then holds for a cycle, as
+it should. Such ``mocap_stale`` holds are
+tolerated here; any other fault fails the test.
 """
 
 from __future__ import annotations
@@ -62,6 +64,21 @@ def pattern_rows(log_path: str) -> dict[str, np.ndarray]:
     log = read_flight_log(log_path)
     sel = (log["phase"] == "pattern") & (log["action"] == "CONTINUE")
     return {k: np.asarray(v[sel]) for k, v in log.columns.items() if k not in ("phase", "action", "sp_frame")}
+
+
+def settled(t_s: np.ndarray, gap_s: float = 0.1, window_s: float = 1.0) -> np.ndarray:
+    """Log rows not within ``window_s`` after a gap of more than ``gap_s`` between control cycles.
+
+    The loop runs at 100 Hz (0.01 s); a gap of 0.1 s is a stale-mocap hold (its rows are not
+    CONTINUE) or the loop itself starved on a loaded machine (0.1 s sim is 20 ms wall at 5x), during
+    which the autopilot flew the last setpoint. After one the yaw has a lag to make up (kp_yaw
+    1/s: 0.3 rad/s for a 0.3 rad lag), which must not be read as turning while moving.
+    """
+    gaps = np.flatnonzero(np.diff(t_s) > gap_s) + 1
+    ok = np.ones(len(t_s), dtype=bool)
+    for i in gaps:
+        ok &= ~((t_s >= t_s[i]) & (t_s < t_s[i] + window_s))
+    return ok
 
 
 async def fly(
@@ -116,11 +133,14 @@ def test_rectangle_flies_its_corners_with_turns_in_place(autopilot: str, tmp_pat
     for cx, cy in ((-1.0, -0.5), (1.0, -0.5), (1.0, 0.5), (-1.0, 0.5)):
         assert np.min(np.hypot(x - cx, y - cy)) < 0.05, (cx, cy)
     assert np.all(np.abs(x) < 1.0 + MAX_BOUND_M) and np.all(np.abs(y) < 0.5 + MAX_BOUND_M)
-    # the yaw turns only while standing at a corner (speed ~0 while the yaw rate is large)
+    # the yaw turns only while standing at a corner (speed ~0 while the yaw rate is large), except
+    # while the yaw catches up after the control loop missed its ticks (see settled())
+    ok = settled(r["t_s"])
+    assert ok.mean() > 0.8, "too few undisturbed control cycles to judge the corners"
     turning = np.abs(r["sp_yaw_rate_rad_s"]) > 0.3
-    assert turning.any()
+    assert (turning & ok).any()
     speed = np.hypot(r["ref_vx_m_s"], r["ref_vy_m_s"])
-    assert np.all(speed[turning] < 0.02)
+    assert np.all(speed[turning & ok] < 0.02)
 
 
 @pytest.mark.parametrize("autopilot", ["px4", "ardupilot"])

@@ -35,7 +35,7 @@ from flightkit.link.base import (
     VehicleLink,
     VelocitySetpoint,
 )
-from flightkit.link.mavsdk_link import MavsdkLink
+from flightkit.link.mavsdk import MavsdkLink
 from flightkit.sim.lab import SimEvent, SimLab
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(90)]
@@ -63,7 +63,7 @@ async def flight(
     autopilot: Autopilot, link_kw: dict[str, object] | None = None, **lab_kw: object
 ) -> AsyncIterator[tuple[SimLab, MavsdkLink]]:
     """A simulated lab on a free port and a connected MAVSDK link to it."""
-    clock = SimClock(speed=SPEED)
+    clock = SimClock(SPEED)
     kw: dict[str, object] = {"ready_after_s": 0.0, **lab_kw}
     lab = SimLab(autopilot=autopilot, url="udpin:127.0.0.1:0", clock=clock, **kw)  # type: ignore[arg-type]
     with lab:

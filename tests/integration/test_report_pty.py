@@ -18,6 +18,7 @@ from estimation.report.transport import PortLost
 from flightkit.cli.main import main as cli_main
 from flightkit.errors import ProtocolError
 from flightkit.frames import Transform
+from tests.conftest import wait
 
 FAST = SessionConfig(heartbeat_s=0.1, link_timeout_s=0.5, hello_retry_s=0.05, hello_retry_max_s=0.3)
 FAULTS = Faults(drop=0.1, duplicate=0.05, reorder=0.1, corrupt=0.05, delay_s=0.002, jitter_s=0.003)
@@ -50,13 +51,13 @@ class PoseLog:
         server._on_event = hook  # type: ignore[method-assign]
 
 
-def _stream(rep: Reporter, server: MapServer, start: int, count: int, every: int = 10) -> None:
-    """Offer poses, pausing on the server's state (never on wall time) every ``every`` poses."""
+def _stream(rep: Reporter, start: int, count: int) -> None:
+    """Offer poses one at a time, each once the previous one is on the wire (pacing on the
+    reporter's state, never on wall time): none is superseded, so the order check sees them all."""
     for i in range(start, start + count):
+        sent = rep.stats.poses_sent
         rep.report_pose(_sample(i))
-        if i % every == every - 1:
-            want = rep.stats.poses_sent
-            server.wait_for(lambda rs, w=want: bool(rs) and rs[0].poses >= w * 0.5, 10.0)
+        wait(lambda s=sent: rep.stats.poses_sent > s, 10.0, f"pose {i} to go on the wire")
 
 
 def test_faulty_link_delivers_every_reliable_message_in_order(tmp_path: Path) -> None:
@@ -68,19 +69,28 @@ def test_faulty_link_delivers_every_reliable_message_in_order(tmp_path: Path) ->
             order_ids = [server.send_order(4, float(i), -float(i)) for i in range(20)]
             for i in range(60):
                 rep.report_segment((i, 0.0), (i, 1.0))
-            _stream(rep, server, 0, 300)
+            _stream(rep, 0, 300)
             rep.wait_delivered(20.0)
             server.wait_for(lambda rs: rs[0].orders_acked == 20, 20.0)
-            final = _sample(300)
-            rep.report_pose(final)
-            server.wait_for(
-                lambda rs: rs[0].pose is not None and rs[0].pose.stamp_us == final.stamp_ns // 1000, 10.0
-            )
+            # The newest pose reaches the server. A pose is never retransmitted (a newer one
+            # replaces it), and this link drops or corrupts ~15 % of frames, so offer a fresh
+            # one until one gets through (a single offer failed here one run in ~6).
+            for i in range(300, 400):
+                stamp_us = _sample(i).stamp_ns // 1000
+                rep.report_pose(_sample(i))
+                try:
+                    server.wait_for(lambda rs, s=stamp_us: rs[0].pose is not None and rs[0].pose.stamp_us == s, 0.3)
+                    break
+                except ProtocolError:
+                    continue
+            else:
+                pytest.fail("100 fresh poses offered, none reached the server")
             (robot,) = server.robots()
         assert [s.x0 for s in robot.segments] == [float(i) for i in range(60)]
         assert [o.order.order_id for o in rep.nav_orders] == order_ids
         stamps = log.stamps[4]
         assert stamps == sorted(set(stamps)), "a stale pose was delivered after a fresher one"
+        assert len(stamps) > 150  # of the 300 sent: the link drops/corrupts ~15 % and reorders 10 %
         faults = relay.stats_a_to_b
         assert faults.dropped and faults.duplicated and faults.corrupted and faults.reordered
         assert rep.stats.retransmissions > 0
