@@ -46,12 +46,15 @@ from typing import Any
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink2
 
-from flightkit.link.base import VelocitySetpoint
-from flightkit.link.mavlink import encode_velocity_setpoint
-from trajectories.flightlog import read_flight_log
-from trajectories.plan import Plan, load_plan
-from trajectories.runner import FlightRunner
-from trajectories.simulated import fly_plan_in_sim
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # `bench._host` when run as a script
+
+from bench._host import StealMeter  # noqa: E402
+from flightkit.link.base import VelocitySetpoint  # noqa: E402
+from flightkit.link.mavlink import encode_velocity_setpoint  # noqa: E402
+from trajectories.flightlog import read_flight_log  # noqa: E402
+from trajectories.plan import Plan, load_plan  # noqa: E402
+from trajectories.runner import FlightRunner  # noqa: E402
+from trajectories.simulated import fly_plan_in_sim  # noqa: E402
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 SPM = mavlink2.MAVLINK_MSG_ID_SET_POSITION_TARGET_LOCAL_NED
@@ -341,15 +344,16 @@ def main() -> None:
         print("timing (wall time; simulator and sniffer in their own processes; PX4 personality, pymavlink, hover)")
         print(
             f"{'mocap':>6} {'send':>9} {'cycle p50':>10} {'cycle p99':>10} {'lat p50':>8} {'lat p99':>8} "
-            f"{'n':>5} {'jitter sd':>9} {'jitter p99':>10}"
+            f"{'n':>5} {'jitter sd':>9} {'jitter p99':>10} {'steal ms':>8}"
         )
         for rate in (100.0, 200.0):
             for send_now in (True, False):
-                r = timing_run(rate, send_now, args.hold, tmp)
+                with StealMeter() as stolen:
+                    r = timing_run(rate, send_now, args.hold, tmp)
                 print(
                     f"{rate:>4.0f}Hz {'now' if send_now else 'stream':>9} {r.cycle_p50_ms:>8.3f}ms "
                     f"{r.cycle_p99_ms:>8.3f}ms {r.lat_p50_ms:>6.2f}ms {r.lat_p99_ms:>6.2f}ms {r.matched:>5} "
-                    f"{r.period_std_ms:>7.3f}ms {r.period_p99_ms:>8.3f}ms",
+                    f"{r.period_std_ms:>7.3f}ms {r.period_p99_ms:>8.3f}ms {stolen.ms:>8.0f}",
                     flush=True,
                 )
         print()

@@ -34,6 +34,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench._host import StealMeter  # noqa: E402
 from flightkit.clock import SimClock, WallClock  # noqa: E402
 from flightkit.config import Autopilot, LinkConfig  # noqa: E402
 from flightkit.link.base import VelocitySetpoint  # noqa: E402
@@ -233,25 +234,27 @@ def main() -> int:
     args = parser.parse_args()
 
     print("setpoint stream over UDP loopback, period error = |period - 1/rate| from kernel receive stamps;")
-    print("'woken p99' is the same from when the receiving process woke up (adds its scheduling delay)")
+    print("'woken p99' is the same from when the receiving process woke up (adds its scheduling delay);")
+    print("'steal ms': CPU time the hypervisor took from this VM during the row (bench/_host.py)")
     print(
         f"{'sender':<28}{'target Hz':>10}{'achieved Hz':>13}{'p50 ms':>9}{'p99 ms':>9}{'max ms':>9}"
-        f"{'woken p99':>11}"
+        f"{'woken p99':>11}{'steal ms':>11}"
     )
     for rate in (50.0, 100.0, 200.0):
-        ours = asyncio.run(bench_link_stream(rate, args.seconds))
-        base = bench_naive_stream(rate, args.seconds)
-        floor = bench_sleep_floor(rate, args.seconds)
-        rows = (
-            ("MavlinkLink (deadlines)", ours),
-            ("naive sleep(period)", base),
-            ("bare sleep loop (floor)", floor),
+        runs = (
+            ("MavlinkLink (deadlines)", lambda r=rate: asyncio.run(bench_link_stream(r, args.seconds))),
+            ("naive sleep(period)", lambda r=rate: bench_naive_stream(r, args.seconds)),
+            ("bare sleep loop (floor)", lambda r=rate: bench_sleep_floor(r, args.seconds)),
         )
-        for name, r in rows:
+        for name, fn in runs:
+            with StealMeter() as stolen:
+                r = fn()
             woken = f"{r['app_p99_ms']:>11.3f}" if "app_p99_ms" in r else f"{'-':>11}"
             print(
                 f"{name:<28}{rate:>10.0f}{r['rate_hz']:>13.2f}{r['p50_ms']:>9.3f}{r['p99_ms']:>9.3f}{r['max_ms']:>9.3f}"
                 + woken
+                + f"{stolen.ms:>11.0f}",
+                flush=True,
             )
     print()
     c = asyncio.run(bench_commands(args.commands))
