@@ -220,6 +220,26 @@ class Telemetry:
         return np.asarray(self.pos_local_enu_m, dtype=np.float64)
 
 
+class LinkLifetime:
+    """``async with link:`` connects on entry (waiting for the heartbeat) and closes on exit;
+    the backends inherit it."""
+
+    async def connect(self) -> VehicleInfo:
+        raise NotImplementedError
+
+    async def close(self) -> None:
+        raise NotImplementedError
+
+    async def __aenter__(self) -> Self:
+        await self.connect()
+        return self
+
+    async def __aexit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        await self.close()
+
+
 class _StaticProtocolMeta(type(Protocol)):  # type: ignore[misc]
     """Protocol metaclass whose ``isinstance`` looks members up without running them.
 

@@ -32,8 +32,7 @@ import logging
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from types import TracebackType
-from typing import Any, Self
+from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
@@ -44,6 +43,7 @@ from flightkit.link.base import (
     ExternalPose,
     ExternalPoseKind,
     FlightMode,
+    LinkLifetime,
     Telemetry,
     VehicleInfo,
     VelocitySetpoint,
@@ -85,7 +85,7 @@ class LinkStats:
     acks_received: int
 
 
-class MavlinkLink:
+class MavlinkLink(LinkLifetime):
     """A :class:`~flightkit.link.base.VehicleLink` over pymavlink.
 
     Args:
@@ -191,15 +191,6 @@ class MavlinkLink:
         return self._clock
 
     # ------------------------------------------------------------------ lifetime
-
-    async def __aenter__(self) -> Self:
-        await self.connect()
-        return self
-
-    async def __aexit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        await self.close()
 
     async def connect(self) -> VehicleInfo:
         """Open the endpoint, start the reader thread and wait for the autopilot's HEARTBEAT.

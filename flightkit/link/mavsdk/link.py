@@ -28,8 +28,7 @@ import contextlib
 import logging
 import math
 from collections.abc import Callable
-from types import TracebackType
-from typing import Any, Self
+from typing import Any
 
 from flightkit.clock import Clock
 from flightkit.config import Autopilot, LinkConfig
@@ -44,6 +43,7 @@ from flightkit.link.base import (
     ExternalPose,
     ExternalPoseKind,
     FlightMode,
+    LinkLifetime,
     Telemetry,
     VehicleInfo,
     VelocitySetpoint,
@@ -67,7 +67,7 @@ _PX4_OFFBOARD_WARMUP_S = 1.25
 _APM_TAKEOFF_RETRY_S = 5.0
 
 
-class MavsdkLink:
+class MavsdkLink(LinkLifetime):
     """A :class:`~flightkit.link.base.VehicleLink` over MAVSDK.
 
     Args:
@@ -132,15 +132,6 @@ class MavsdkLink:
         return self._stream.sent
 
     # ------------------------------------------------------------------ lifetime
-
-    async def __aenter__(self) -> Self:
-        await self.connect()
-        return self
-
-    async def __aexit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        await self.close()
 
     async def connect(self) -> VehicleInfo:
         """Open the connection and wait for the autopilot's heartbeat.
