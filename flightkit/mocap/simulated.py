@@ -10,6 +10,10 @@ Faults can be injected on demand, like a lab's real trouble:
 
 * :meth:`SimMocapSource.drop_for`: the stream goes silent for a while (network hiccup);
   frame numbers keep counting, so ``seq`` shows the gap.
+
+Frame numbers follow the lab clock, as a real camera system's do (frame n is exposed at
+``n / rate_hz`` after the start): when the sampling thread is starved (a loaded machine),
+the frames it could not take show as a gap in ``seq``, not as a slower rate.
 * :meth:`SimMocapSource.hide_body` / :meth:`~SimMocapSource.show_body`: the body is occluded;
   frames keep coming, flagged ``valid=False`` with the last tracked pose.
 
@@ -119,6 +123,7 @@ class SimMocapSource:
         self._seen: list[str] = []
         self._subs: list[_Subscriber] = []
         self._frame = 0
+        self._t0_s = 0.0
         self._hidden = False
         self._drop_until_s = -math.inf
         self._last_tracked: Transform | None = None
@@ -248,7 +253,7 @@ class SimMocapSource:
     def _run(self) -> None:
         clock = self.clock
         period = 1.0 / self.rate_hz
-        next_s = clock.monotonic_s()
+        next_s = self._t0_s = clock.monotonic_s()
         while not self._stop.is_set():
             now = clock.monotonic_s()
             try:
@@ -272,10 +277,12 @@ class SimMocapSource:
     def _sample(self, now_s: float) -> None:
         stamp_ns = self.clock.time_ns()
         with self._lock:
-            self._frame += 1
-            seq = self._frame
+            # the frame the mocap system exposes now (1 at the start); never repeat one
+            frame = max(self._frame + 1, 1 + int((now_s - self._t0_s) * self.rate_hz + 1e-6))
+            skipped, self._frame = frame - self._frame, frame
+            seq = frame
             if now_s < self._drop_until_s:
-                self.frames_dropped += 1
+                self.frames_dropped += skipped
                 return
             hidden = self._hidden
         if hidden:
