@@ -6,7 +6,8 @@ demos, and in lock-step under a test that advances time explicitly.
 
 * :class:`WallClock`: real time.
 * :class:`SimClock`: simulated time running ``speed`` times faster than real time
-  (``speed=1`` for demos, 5-20 for tests of whole flights).
+  (``speed=1`` for demos, 5-20 for tests of whole flights); optionally slowed down rather
+  than jumping when the host stalls the process (``max_wall_step_s``).
 * :class:`LockstepClock`: time moves only when :meth:`LockstepClock.advance` is called;
   sleepers (coroutines and threads) wake exactly at their deadlines.
 
@@ -23,7 +24,12 @@ import threading
 import time
 from typing import Protocol, runtime_checkable
 
-__all__ = ["Clock", "LockstepClock", "SimClock", "WallClock"]
+__all__ = ["ONE_PROCESS_WALL_STEP_S", "Clock", "LockstepClock", "SimClock", "WallClock"]
+
+#: The stall limit (``SimClock(max_wall_step_s=...)``) for a simulated lab whose clients share its
+#: clock in one process: 40 ms of wall time, 0.2 s of simulated time at 5x. Normal reads of the
+#: clock in a running lab are a few milliseconds apart (the autopilot ticks every 2-5 ms).
+ONE_PROCESS_WALL_STEP_S = 0.04
 
 
 @runtime_checkable
@@ -81,33 +87,83 @@ class SimClock:
     Args:
         speed: simulated seconds per wall second (> 0).
         start_ns: the epoch time (ns) that simulated time starts at; defaults to now.
+        max_wall_step_s: if set, simulated time advances by at most this much wall time
+            (times ``speed``) between two reads of the clock. Use it when everything that
+            shares the clock runs in one process (flight tests, the demo): when the host stalls
+            the process (a 2-core VM whose hypervisor takes the CPU away for 0.3 s has been
+            seen), a clock that follows the wall clock would jump by 0.3 s x ``speed`` at once
+            and every deadline in the lab (heartbeat, mocap age) would expire together,
+            although nothing went wrong in the simulated world. With the limit the lab slows
+            down for the stall instead, as a simulator's real-time factor drops when its host
+            cannot keep up. Sleeps then wait on simulated time in wall slices of at most half
+            the limit, so an idle process loses no time. Leave it off (the default) when
+            another process runs its own clock at the same speed and compares stamps with it.
     """
 
-    def __init__(self, speed: float = 1.0, start_ns: int | None = None) -> None:
+    def __init__(self, speed: float = 1.0, start_ns: int | None = None, max_wall_step_s: float | None = None) -> None:
         if not speed > 0.0 or speed == float("inf"):
             raise ValueError(f"SimClock speed must be a positive finite number, got {speed}")
+        if max_wall_step_s is not None and not 0.0 < max_wall_step_s < float("inf"):
+            raise ValueError(f"SimClock max_wall_step_s must be a positive number of seconds, got {max_wall_step_s}")
         self._speed = float(speed)
         self._wall0 = time.monotonic()
         self._start_ns = time.time_ns() if start_ns is None else int(start_ns)
+        self._max_wall_step_s = max_wall_step_s
+        # the stall-limited clock: simulated seconds so far and the wall time they were read at
+        self._lock = threading.Lock()
+        self._sim_s = 0.0
+        self._wall_read = self._wall0
 
     @property
     def speed(self) -> float:
         return self._speed
 
+    @property
+    def max_wall_step_s(self) -> float | None:
+        """The stall limit (wall seconds), or None when time follows the wall clock exactly."""
+        return self._max_wall_step_s
+
     def monotonic_s(self) -> float:
-        return (time.monotonic() - self._wall0) * self._speed
+        if self._max_wall_step_s is None:
+            return (time.monotonic() - self._wall0) * self._speed
+        with self._lock:
+            wall = time.monotonic()
+            step = min(wall - self._wall_read, self._max_wall_step_s)
+            self._wall_read = wall
+            if step > 0.0:
+                self._sim_s += step * self._speed
+            return self._sim_s
 
     def time_ns(self) -> int:
         return self._start_ns + int(self.monotonic_s() * 1e9)
 
     async def sleep(self, duration_s: float) -> None:
-        await asyncio.sleep(max(0.0, duration_s) / self._speed)
+        if self._max_wall_step_s is None:
+            await asyncio.sleep(max(0.0, duration_s) / self._speed)
+            return
+        remaining = max(0.0, duration_s)
+        deadline = self.monotonic_s() + remaining
+        while True:  # at least one pass, so sleep(0) still yields to the event loop
+            await asyncio.sleep(min(remaining / self._speed, 0.5 * self._max_wall_step_s))
+            remaining = deadline - self.monotonic_s()
+            if remaining <= 0.0:
+                return
 
     def sleep_blocking(self, duration_s: float) -> None:
-        time.sleep(max(0.0, duration_s) / self._speed)
+        if self._max_wall_step_s is None:
+            time.sleep(max(0.0, duration_s) / self._speed)
+            return
+        remaining = max(0.0, duration_s)
+        deadline = self.monotonic_s() + remaining
+        while True:
+            time.sleep(min(remaining / self._speed, 0.5 * self._max_wall_step_s))
+            remaining = deadline - self.monotonic_s()
+            if remaining <= 0.0:
+                return
 
     def __repr__(self) -> str:
-        return f"SimClock(speed={self._speed:g})"
+        limit = "" if self._max_wall_step_s is None else f", max_wall_step_s={self._max_wall_step_s:g}"
+        return f"SimClock(speed={self._speed:g}{limit})"
 
 
 class LockstepClock:

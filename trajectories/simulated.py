@@ -22,7 +22,7 @@ from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from flightkit.clock import Clock, SimClock
+from flightkit.clock import ONE_PROCESS_WALL_STEP_S, Clock, SimClock
 from flightkit.config import Autopilot, LabConfig, LinkBackend
 from flightkit.link.base import VehicleLink
 from flightkit.mocap.simulated import SimMocapSource
@@ -108,7 +108,7 @@ async def sim_session(
         LinkTimeout: the link did not hear the simulator (should not happen on loopback).
     """
     cfg = sim_lab_config(lab_cfg, autopilot=autopilot, backend=backend, speed=speed)
-    clock = clock or SimClock(cfg.sim.speed)
+    clock = clock or SimClock(cfg.sim.speed, max_wall_step_s=ONE_PROCESS_WALL_STEP_S)
     lab = SimLab(
         cfg,
         url="udpin:127.0.0.1:0",

@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from flightkit.clock import Clock, SimClock
+from flightkit.clock import ONE_PROCESS_WALL_STEP_S, Clock, SimClock
 from flightkit.config import Autopilot, LabConfig, LinkBackend
 from flightkit.frames import Transform, angle_diff_rad
 from flightkit.link.base import ExternalPoseKind
@@ -323,7 +323,7 @@ async def fly_closed_loop(
     live_cfg = LiveVoConfig(method=method, vision_rate_hz=vision_rate_hz, kind=kind)
     keys = Keys(cfg.vehicle.namespace)
     body = cfg.mocap.body
-    clock = clock or SimClock(float(speed))
+    clock = clock or SimClock(float(speed), max_wall_step_s=ONE_PROCESS_WALL_STEP_S)
     report = ClosedLoopReport(
         ap.value, method, camera=f"{cam.width_px}x{cam.height_px} at {cam.rate_hz:g} Hz"
     )

@@ -26,7 +26,7 @@ from types import TracebackType
 
 import numpy.typing as npt
 
-from flightkit.clock import Clock, SimClock
+from flightkit.clock import ONE_PROCESS_WALL_STEP_S, Clock, SimClock
 from flightkit.config import Autopilot, LabConfig
 from flightkit.errors import LinkTimeout
 from flightkit.frames import Transform
@@ -89,7 +89,7 @@ class SimLab:
     ) -> None:
         self.config = config or LabConfig()
         self.personality: Personality = personality_for(autopilot or self.config.vehicle.autopilot)
-        self.clock: Clock = clock or SimClock(self.config.sim.speed)
+        self.clock: Clock = clock or SimClock(self.config.sim.speed, max_wall_step_s=ONE_PROCESS_WALL_STEP_S)
         sim = self.config.sim
         params = dynamics_params or DynamicsParams(
             velocity_time_constant_s=sim.velocity_time_constant_s,

@@ -17,6 +17,7 @@ import re
 import signal
 import subprocess
 import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -24,6 +25,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from flightkit.clock import ONE_PROCESS_WALL_STEP_S
 from flightkit.config import Autopilot
 from flightkit.errors import MocapBodyMissing, SafetyAbort
 from flightkit.link.base import FlightMode
@@ -195,6 +197,37 @@ def test_heartbeat_loss_stops_and_reports(tmp_path: Path) -> None:
     assert "heartbeat" in hb.message
     # the autopilot's own failsafe took the vehicle (PX4: offboard lost -> position mode)
     assert any(e.startswith("failsafe") for e in run.events)
+
+
+def test_host_stall_slows_the_lab_instead_of_tripping_its_deadlines(tmp_path: Path) -> None:
+    # The whole process is stalled for 0.6 s of wall time (this thread holds the GIL with a
+    # 10 s switch interval, so no other thread runs), as a host that takes the CPU away does.
+    # At 5x that is 3 s of sim time: a clock that followed the wall clock would see the
+    # heartbeat and the mocap lost at once. The lab's clock slows down instead.
+    stall: dict[str, float] = {}
+
+    def inject(run: Run, _s: Status) -> None:
+        clock = run.session.clock
+        before_s = clock.monotonic_s()
+        interval = sys.getswitchinterval()
+        sys.setswitchinterval(10.0)
+        try:
+            wall0 = time.monotonic()
+            while time.monotonic() - wall0 < 0.6:
+                pass
+            stall["wall_s"] = time.monotonic() - wall0
+        finally:
+            sys.setswitchinterval(interval)
+        stall["sim_s"] = clock.monotonic_s() - before_s
+
+    run = asyncio.run(fly_with_fault(tmp_path, inject))
+    s = run.summary
+    assert s is not None
+    assert stall["wall_s"] >= 0.6
+    assert stall["sim_s"] <= ONE_PROCESS_WALL_STEP_S * SPEED + 0.01  # one limited step, not 3 s
+    assert s.outcome == "completed", s.format_table()
+    assert kinds(s) == [], s.format_table()  # at most a stale-mocap hold, no lost link or mocap
+    assert s.laps_completed == 1
 
 
 @pytest.mark.parametrize("autopilot", ["px4", "ardupilot"])

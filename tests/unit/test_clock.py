@@ -73,3 +73,65 @@ def test_lockstep_blocking_sleep_from_thread() -> None:
     t.join()
     with pytest.raises(ValueError):
         clock.advance(-1.0)
+
+
+class _FakeWall:
+    """Stands in for ``time.monotonic`` so a host stall can be staged without waiting for one."""
+
+    def __init__(self) -> None:
+        self.now_s = 1000.0
+
+    def __call__(self) -> float:
+        return self.now_s
+
+
+def test_stall_limited_sim_clock_slows_down_instead_of_jumping(monkeypatch: pytest.MonkeyPatch) -> None:
+    wall = _FakeWall()
+    monkeypatch.setattr("flightkit.clock.time.monotonic", wall)
+    clock = SimClock(speed=5.0, max_wall_step_s=0.04)
+    plain = SimClock(speed=5.0)
+    assert clock.monotonic_s() == 0.0 and plain.monotonic_s() == 0.0
+    for _ in range(10):  # normal running: reads 5 ms apart follow the wall clock x speed
+        wall.now_s += 0.005
+        clock.monotonic_s()
+    assert clock.monotonic_s() == pytest.approx(0.25)
+    wall.now_s += 0.5  # the host takes the process away for half a second
+    assert clock.monotonic_s() == pytest.approx(0.25 + 0.04 * 5.0)  # the lab lost 0.46 s of wall time
+    assert plain.monotonic_s() == pytest.approx(0.55 * 5.0)  # the plain clock jumped 2.5 s
+    wall.now_s += 0.01
+    assert clock.monotonic_s() == pytest.approx(0.45 + 0.05)  # and runs at speed again afterwards
+
+
+@pytest.mark.parametrize("blocking", [False, True])
+def test_stall_limited_sleep_waits_until_the_simulated_deadline(blocking: bool) -> None:
+    clock = SimClock(speed=50.0, max_wall_step_s=0.004)  # sleeps in 2 ms slices
+    wall0, sim0 = time.monotonic(), clock.monotonic_s()
+    if blocking:
+        clock.sleep_blocking(1.0)
+    else:
+        asyncio.run(clock.sleep(1.0))
+    assert clock.monotonic_s() - sim0 >= 1.0
+    assert time.monotonic() - wall0 >= 0.0199  # never sooner than speed allows
+
+
+def test_stall_limited_sleep_zero_still_yields() -> None:
+    clock = SimClock(speed=5.0, max_wall_step_s=0.04)
+    ran: list[str] = []
+
+    async def other() -> None:
+        ran.append("other")
+
+    async def main() -> None:
+        task = asyncio.ensure_future(other())
+        await clock.sleep(0.0)
+        ran.append("after sleep(0)")
+        await task
+
+    asyncio.run(main())
+    assert ran == ["other", "after sleep(0)"]
+
+
+def test_sim_clock_rejects_bad_stall_limit() -> None:
+    for bad in (0.0, -1.0, float("inf"), float("nan")):
+        with pytest.raises(ValueError, match="max_wall_step_s"):
+            SimClock(2.0, max_wall_step_s=bad)
