@@ -197,16 +197,24 @@ def trial(tmp: Path, compression: str, width: int, height: int, camera_hz: float
 # --------------------------------------------------------------------------- bare writer baseline
 
 
+def encoded_pool(width: int, height: int) -> list[tuple[bytes, bytes]]:
+    """The synthetic publisher's images (capture.sources.synthetic.noise_frames), CDR-encoded."""
+    from capture.sources.synthetic import noise_frames
+    from flightkit.bus.msgs import Header, Image
+
+    return [
+        (bytes(Image.from_array(Header(0, "c"), rgb, "rgb8").encode()),
+         bytes(Image.from_array(Header(0, "d"), dep, "16UC1").encode()))
+        for rgb, dep in noise_frames(width, height)
+    ]
+
+
 def bare_fast_writer_mb_s(tmp: Path, compression: str, width: int, height: int, frames: int) -> float:
     """The recorder's own writer (capture.mcapwriter) in a bare loop, same payloads as below."""
     from capture.mcapwriter import FastMcapWriter
-    from flightkit.bus.msgs import Header, Image, schema_text
+    from flightkit.bus.msgs import schema_text
 
-    rng = np.random.default_rng(7)
-    rgb = bytes(Image.from_array(Header(0, "c"), rng.integers(0, 256, (height, width, 3), dtype=np.uint8), "rgb8")
-                .encode())
-    dep = bytes(Image.from_array(Header(0, "d"), rng.integers(300, 8000, (height, width), dtype=np.uint16), "16UC1")
-                .encode())
+    pool = encoded_pool(width, height)
     path = tmp / f"bare_fast_{compression}.mcap"
     t0 = time.perf_counter()
     with path.open("wb", buffering=0) as fh:
@@ -216,6 +224,7 @@ def bare_fast_writer_mb_s(tmp: Path, compression: str, width: int, height: int, 
         c1 = w.register_channel("/uav1/camera/color/image", "cdr", sid, {})
         c2 = w.register_channel("/uav1/camera/depth/image", "cdr", sid, {})
         for i in range(frames):
+            rgb, dep = pool[i % len(pool)]
             w.add_message(c1, i, rgb, i, i)
             w.add_message(c2, i, dep, i, i)
             if w.chunk_bytes >= 4 << 20:
@@ -224,18 +233,16 @@ def bare_fast_writer_mb_s(tmp: Path, compression: str, width: int, height: int, 
         os.fsync(fh.fileno())
     dt = time.perf_counter() - t0
     path.unlink()
-    return frames * (len(rgb) + len(dep)) / dt / 1e6
+    return frames * sum(len(r) + len(d) for r, d in pool) / len(pool) / dt / 1e6
 
 
 def bare_writer_mb_s(tmp: Path, compression: str, width: int, height: int, frames: int) -> float:
     """A plain mcap Writer loop writing the same messages (rgb + depth payloads) from memory."""
     from mcap.writer import CompressionType, Writer
 
-    from flightkit.bus.msgs import Header, Image, schema_text
+    from flightkit.bus.msgs import schema_text
 
-    rng = np.random.default_rng(7)
-    rgb = Image.from_array(Header(0, "c"), rng.integers(0, 256, (height, width, 3), dtype=np.uint8), "rgb8").encode()
-    dep = Image.from_array(Header(0, "d"), rng.integers(300, 8000, (height, width), dtype=np.uint16), "16UC1").encode()
+    pool = encoded_pool(width, height)
     comp = {"none": CompressionType.NONE, "zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4}[compression]
     path = tmp / f"bare_{compression}.mcap"
     t0 = time.perf_counter()
@@ -246,13 +253,14 @@ def bare_writer_mb_s(tmp: Path, compression: str, width: int, height: int, frame
         c1 = w.register_channel("/uav1/camera/color/image", "cdr", sid)
         c2 = w.register_channel("/uav1/camera/depth/image", "cdr", sid)
         for i in range(frames):
+            rgb, dep = pool[i % len(pool)]
             w.add_message(c1, i, bytes(rgb), i, i)
             w.add_message(c2, i, bytes(dep), i, i)
         w.finish()
         fh.flush()
         os.fsync(fh.fileno())
     dt = time.perf_counter() - t0
-    size = frames * (len(rgb) + len(dep))
+    size = frames * sum(len(r) + len(d) for r, d in pool) / len(pool)
     path.unlink()
     return size / dt / 1e6
 

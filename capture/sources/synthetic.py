@@ -21,6 +21,7 @@ import time
 from collections.abc import Sequence
 
 import numpy as np
+import numpy.typing as npt
 import zenoh
 
 from capture.streams import CameraModel, CameraStream, PosePublisher
@@ -37,6 +38,24 @@ logger = logging.getLogger(__name__)
 def circle_pose(t_s: float) -> Transform:
     a = 0.5 * t_s
     return Transform.from_xyz_yaw([math.cos(a), math.sin(a), 1.5], a + math.pi)
+
+
+def noise_frames(
+    width_px: int, height_px: int, count: int = 8, seed: int = 7
+) -> list[tuple[npt.NDArray[np.uint8], npt.NDArray[np.uint16]]]:
+    """``count`` different (rgb8, 16-bit depth in mm) noise image pairs, the same for a given seed.
+
+    Consecutive frames differ, as a camera's do: with one image repeated, zstd would find
+    every frame again inside a 4 MiB chunk and compress far better than real footage allows.
+    """
+    rng = np.random.default_rng(seed)
+    return [
+        (
+            rng.integers(0, 256, (height_px, width_px, 3), dtype=np.uint8),
+            rng.integers(300, 8000, (height_px, width_px), dtype=np.uint16),
+        )
+        for _ in range(count)
+    ]
 
 
 class SyntheticPublisher:
@@ -68,9 +87,7 @@ class SyntheticPublisher:
         self.camera_hz, self.mocap_hz = camera_hz, mocap_hz
         f = width_px / 2.0
         model = CameraModel(width_px, height_px, f, f, (width_px - 1) / 2, (height_px - 1) / 2, (0.0,) * 5)
-        rng = np.random.default_rng(7)
-        self._rgb = rng.integers(0, 256, (height_px, width_px, 3), dtype=np.uint8)
-        self._depth = rng.integers(300, 8000, (height_px, width_px), dtype=np.uint16)
+        self._pool = noise_frames(width_px, height_px)
         self.color = CameraStream(session, keys, "color", model, "rgb8") if camera_hz > 0 else None
         self.depth = CameraStream(session, keys, "depth", model, "16UC1") if camera_hz > 0 and depth else None
         self.pose = PosePublisher(session, keys, body) if mocap_hz > 0 else None
@@ -98,11 +115,12 @@ class SyntheticPublisher:
 
     def publish_frame(self) -> None:
         stamp = self.clock.time_ns()
-        self._rgb[0, :8, 0] = np.frombuffer(self.frames.to_bytes(8, "little"), np.uint8)
+        rgb, depth = self._pool[self.frames % len(self._pool)]
+        rgb[0, :8, 0] = np.frombuffer(self.frames.to_bytes(8, "little"), np.uint8)
         if self.color is not None:
-            self.color.publish(stamp, self._rgb)
+            self.color.publish(stamp, rgb)
         if self.depth is not None:
-            self.depth.publish(stamp, self._depth)
+            self.depth.publish(stamp, depth)
         self.frames += 1
 
     def publish_pose(self) -> None:

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import AsyncIterator
 from types import TracebackType
 from typing import Any, Self
 
@@ -22,7 +21,7 @@ from flightkit.clock import Clock
 from flightkit.errors import BusError
 from flightkit.frames import Transform
 from flightkit.mocap.base import MocapPose
-from flightkit.mocap.store import PoseStore
+from flightkit.mocap.store import PoseStore, StoreBackedSource
 
 __all__ = ["BusMocapSource", "pose_is_valid"]
 
@@ -38,7 +37,7 @@ def pose_is_valid(msg: PoseStamped) -> bool:
     return 0.25 < n2 < 4.0
 
 
-class BusMocapSource:
+class BusMocapSource(StoreBackedSource):
     """A :class:`~flightkit.mocap.base.MocapSource` reading ``<ns>/mocap/*/pose`` from Zenoh.
 
     Args:
@@ -109,20 +108,6 @@ class BusMocapSource:
         if self._sub is None:
             return 0
         return self._sub.missed(self.keys.mocap_pose(body) if body else None)
-
-    # -- MocapSource
-    def bodies(self) -> tuple[str, ...]:
-        return self._store.bodies()
-
-    def latest(self, body: str) -> MocapPose | None:
-        return self._store.latest(body)
-
-    async def wait_for_body(self, body: str, timeout_s: float) -> MocapPose:
-        """Wait for a valid pose of ``body`` (``timeout_s`` on the clock); MocapBodyMissing otherwise."""
-        return await self._store.wait_for_body(body, timeout_s)
-
-    def poses(self, body: str | None = None) -> AsyncIterator[MocapPose]:
-        return self._store.poses(body)
 
     async def __aenter__(self) -> Self:
         return self.start()

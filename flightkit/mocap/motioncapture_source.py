@@ -22,7 +22,7 @@ import logging
 import math
 import socket
 import threading
-from collections.abc import AsyncIterator, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from types import TracebackType
 from typing import Any, Self
 
@@ -32,7 +32,7 @@ from flightkit.clock import Clock
 from flightkit.errors import MocapError
 from flightkit.frames import Transform
 from flightkit.mocap.base import MocapPose
-from flightkit.mocap.store import PoseStore
+from flightkit.mocap.store import PoseStore, StoreBackedSource
 
 __all__ = ["MotionCaptureSource", "mock_rigid_bodies"]
 
@@ -73,7 +73,7 @@ def mock_rigid_bodies(bodies: Mapping[str, Transform]) -> str:
     return ";".join(parts)
 
 
-class MotionCaptureSource:
+class MotionCaptureSource(StoreBackedSource):
     """A :class:`~flightkit.mocap.base.MocapSource` backed by ``motioncapture.connect``.
 
     Args:
@@ -206,20 +206,6 @@ class MotionCaptureSource:
         thread = self._thread
         if thread is not None and thread.is_alive():
             thread.join(timeout=0.2)  # a stalled waitForNextFrame never returns: the daemon is abandoned
-
-    # -- MocapSource
-    def bodies(self) -> tuple[str, ...]:
-        return self._store.bodies()
-
-    def latest(self, body: str) -> MocapPose | None:
-        return self._store.latest(body)
-
-    async def wait_for_body(self, body: str, timeout_s: float) -> MocapPose:
-        """Wait for a valid pose of ``body`` (``timeout_s`` on the clock); MocapBodyMissing otherwise."""
-        return await self._store.wait_for_body(body, timeout_s)
-
-    def poses(self, body: str | None = None) -> AsyncIterator[MocapPose]:
-        return self._store.poses(body)
 
     async def __aenter__(self) -> Self:
         return await self.start()

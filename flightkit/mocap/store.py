@@ -18,7 +18,7 @@ from flightkit.clock import Clock
 from flightkit.errors import MocapBodyMissing, MocapError
 from flightkit.mocap.base import MocapPose
 
-__all__ = ["PoseStore"]
+__all__ = ["PoseStore", "StoreBackedSource"]
 
 logger = logging.getLogger(__name__)
 
@@ -190,3 +190,23 @@ class PoseStore:
                     self._listeners.remove(lst)
             if lst.dropped:
                 logger.debug("%s: a slow reader of %s dropped %d poses", self.name, body or "all bodies", lst.dropped)
+
+
+class StoreBackedSource:
+    """The reading half of :class:`~flightkit.mocap.base.MocapSource` for a backend whose
+    thread fills a :class:`PoseStore` (kept in ``self._store``)."""
+
+    _store: PoseStore
+
+    def bodies(self) -> tuple[str, ...]:
+        return self._store.bodies()
+
+    def latest(self, body: str) -> MocapPose | None:
+        return self._store.latest(body)
+
+    async def wait_for_body(self, body: str, timeout_s: float) -> MocapPose:
+        """Wait for a valid pose of ``body`` (``timeout_s`` on the clock); MocapBodyMissing otherwise."""
+        return await self._store.wait_for_body(body, timeout_s)
+
+    def poses(self, body: str | None = None) -> AsyncIterator[MocapPose]:
+        return self._store.poses(body)
