@@ -64,6 +64,7 @@ def track_klt(
     guess: npt.NDArray[np.float32] | None = None,
     back_levels: int | None = None,
     max_iters: int = 20,
+    trust_guess_px: float | npt.NDArray[np.float64] = 0.0,
 ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.bool_]]:
     """Track points from ``prev`` to ``cur`` with a forward-backward consistency check.
 
@@ -80,6 +81,11 @@ def track_klt(
             differs) does not settle there. Every level costs about as much as the finest
             one, so 1 here instead of 3 saves half of the backward pass.
         max_iters: LK iterations per level at most (it also stops on a 0.03 px step).
+        trust_guess_px: with ``guess``, a track that ends within this distance of its guess
+            is kept without the backward pass: the guess (e.g. from the motion prior) is
+            evidence of its own, and a track that agrees with it does not need a second one.
+            Only the others are tracked back (0: all are). A scalar or one value per point
+            (e.g. 0 for points without a real prediction).
 
     Returns:
         ``(pts_cur, ok)``: (N, 2) float32 positions and (N,) bool validity.
@@ -100,18 +106,29 @@ def track_klt(
     )
     if fb_max_px is None:
         return p1.reshape(-1, 2), st1.ravel() == 1
+    ok = st1.ravel() == 1
+    check = ok
+    trust = np.asarray(trust_guess_px, dtype=np.float64)
+    if guess is not None and np.any(trust > 0):
+        # (p1 may share p1_init's buffer: compare with the caller's guess.)
+        dg = p1 - np.asarray(guess, dtype=np.float32).reshape(-1, 1, 2)
+        check = ok & (np.einsum("nij,nij->n", dg, dg) >= trust * trust)
+    sel = np.flatnonzero(check)
+    if len(sel) == 0:
+        return p1.reshape(-1, 2), ok
+    p0s = p0[sel]
     p0b, st2, _ = cv2.calcOpticalFlowPyrLK(
         cur,
         prev,
-        p1,
-        p0.copy(),
+        np.ascontiguousarray(p1[sel]),
+        p0s.copy(),
         winSize=win,
         maxLevel=levels if back_levels is None else back_levels,
         criteria=criteria,
         flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
     )
-    fb = np.einsum("nij,nij->n", p0b - p0, p0b - p0)
-    ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < fb_max_px * fb_max_px)
+    fb = np.einsum("nij,nij->n", p0b - p0s, p0b - p0s)
+    ok[sel] = (st2.ravel() == 1) & (fb < fb_max_px * fb_max_px)
     return p1.reshape(-1, 2), ok
 
 

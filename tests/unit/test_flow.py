@@ -142,6 +142,38 @@ def test_klt_backward_check_with_fewer_levels_still_drops_lost_points(back_level
     assert ok[grid[:, 0] < 60].mean() < 0.1
 
 
+def test_klt_trusting_the_guess_checks_only_tracks_that_land_away_from_it() -> None:
+    """With ``trust_guess_px``, tracks that end at their guess are kept without the backward
+    pass; a track that ends away from its (wrong) guess is still checked, and one that cannot
+    be tracked (its patch is gone) still fails."""
+    big = texture(300, 400, seed=5)
+    prev = np.ascontiguousarray(big[20:260, 20:340])
+    cur = np.ascontiguousarray(big[26:266, 11:331])  # content moves by (+9, -6) px
+    cur[:, :80] = 128
+    grid = (
+        np.stack(np.meshgrid(np.arange(20, 300, 20), np.arange(20, 220, 20)), -1)
+        .reshape(-1, 2)
+        .astype(np.float32)
+    )
+    guess = grid + np.float32([9.0, -6.0])
+    wrong = np.zeros(len(grid), dtype=bool)
+    wrong[::7] = True
+    guess[wrong] += np.float32([4.0, 3.0])  # these tracks start 5 px off and must be checked
+    full_pts, full_ok = track_klt(prev, cur, grid, 0.5, 9, 3, guess=guess, back_levels=1, max_iters=10)
+    pts, ok = track_klt(
+        prev, cur, grid, 0.5, 9, 3, guess=guess, back_levels=1, max_iters=10, trust_guess_px=1.0
+    )
+    inside = grid[:, 0] > 110
+    np.testing.assert_array_equal(pts, full_pts)  # the forward pass is the same
+    assert ok[inside].mean() > 0.95
+    moved = (pts - grid)[ok & inside]
+    np.testing.assert_allclose(moved, np.broadcast_to([9.0, -6.0], moved.shape), atol=0.1)
+    # Inside the textured part the answers agree with the full check, wrong guesses included.
+    np.testing.assert_array_equal(ok[inside], full_ok[inside])
+    assert ok[inside & wrong].all()
+    assert ok[grid[:, 0] < 60].mean() < 0.1
+
+
 def test_stereo_altitude_from_row_consistent_orb_matches() -> None:
     big = texture(240, 400, seed=9)
     d = 16
