@@ -91,7 +91,10 @@ class FlightSummary:
         phases: statistics per phase, in flight order (repeated phases are merged by name).
         faults: every fault, in order of detection.
         laps_completed: laps of the pattern flown to the end.
-        loop_rate_hz: mean control rate; cycle_p50_ms / cycle_p99_ms: compute time per cycle.
+        loop_rate_hz: mean control rate; cycle_p50_ms / cycle_p99_ms: wall time per cycle (from
+            reading the pose to handing the setpoint to the link); cycle_cpu_p50_ms /
+            cycle_cpu_p99_ms: the loop thread's CPU time per cycle, i.e. the same without the
+            time spent waiting for the GIL, the scheduler or a hypervisor that took the CPU.
         log_path: the flight log file (None when not logging).
     """
 
@@ -104,6 +107,8 @@ class FlightSummary:
     loop_rate_hz: float = math.nan
     cycle_p50_ms: float = math.nan
     cycle_p99_ms: float = math.nan
+    cycle_cpu_p50_ms: float = math.nan
+    cycle_cpu_p99_ms: float = math.nan
     log_path: str | None = None
 
     def phase(self, name: str) -> PhaseStats:
@@ -126,6 +131,8 @@ class FlightSummary:
             "loop_rate_hz": _r(self.loop_rate_hz, 1),
             "cycle_p50_ms": _r(self.cycle_p50_ms, 4),
             "cycle_p99_ms": _r(self.cycle_p99_ms, 4),
+            "cycle_cpu_p50_ms": _r(self.cycle_cpu_p50_ms, 4),
+            "cycle_cpu_p99_ms": _r(self.cycle_cpu_p99_ms, 4),
             "phases": [p.to_dict() for p in self.phases],
             "faults": [f.to_dict() for f in self.faults],
             "log_path": self.log_path,
