@@ -213,7 +213,7 @@ def _run_vo(args: argparse.Namespace, cfg: Any, recording: Path, out: Path) -> N
     import numpy as np
 
     from estimation.evaluation import evaluate
-    from estimation.pipeline import run_vo
+    from estimation.pipeline import VoOptions, run_vo
     from estimation.plots import plot_evaluation
     from flightkit.cli.vo import _print_report
     from flightkit.datasets import open_sequence, write_tum
@@ -223,12 +223,24 @@ def _run_vo(args: argparse.Namespace, cfg: Any, recording: Path, out: Path) -> N
         T_body_camera=cfg.camera.T_body_camera.to_transform(),
     )
     gt = seq.groundtruth()
-    # Start at the first frame that has a mocap pose within 20 ms, so VO starts in the world frame.
+    # Start at the first frame that has a mocap pose within 20 ms, so VO starts in the world frame,
+    # and whose depth image is at least half within the depth range: on the ground the camera is a
+    # few centimetres above the floor, below any depth camera's minimum range (0.2 m here).
     start = int(np.searchsorted(seq.stamps_ns(), gt.stamps_ns[0] - 20_000_000))
+    skipped = start
+    opts = VoOptions()
+    for i, frame in enumerate(seq.frames(start), start):
+        d = frame.depth_m
+        if d is None or np.mean((d > opts.min_depth_m) & (d < opts.max_depth_m)) >= 0.5:
+            start = i
+            break
+    if start > skipped:
+        _say("5/6", f"VO starts at frame {start}, after take-off: the depth camera is below its "
+                    f"{opts.min_depth_m:g} m minimum range on the ground")
     _say("5/6", f"visual odometry ({args.method}) on {len(seq) - start} frames of {recording.name}")
     result = run_vo(
-        seq, args.method, T_body_camera=cfg.camera.T_body_camera.to_transform(), init_from_groundtruth=True,
-        start=start,
+        seq, args.method, options=opts, T_body_camera=cfg.camera.T_body_camera.to_transform(),
+        init_from_groundtruth=True, start=start,
     )
     est = result.trajectory("camera")
     write_tum(out / "vo_camera.txt", est)
