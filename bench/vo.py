@@ -21,8 +21,16 @@ natively at each size before timing, see ``bench/_synthetic.py``), at 320x240 an
 
 The process is pinned to one CPU and OpenCV/BLAS to one thread.
 
+The real sequences are decoded and resized frame by frame between the timed calls (the decoding
+is not counted, but it runs on the same core between two frames and evicts the VO's working set
+from the caches: 7-Scenes at 320x240, rgbd-pnp ran 20-30 % more frames per CPU second on the
+same frames held in memory). ``--preload`` decodes and resizes every frame before the timed runs,
+as the synthetic sequences are rendered before them, for the figure of the processing alone;
+the trajectories are the same bit for bit.
+
 Run: .venv/bin/python bench/vo.py [--sizes 320x240,640x480] [--repeat 2] [--no-baseline]
      [--ba 4] [--only kitti06,sim_circle] [--no-synthetic] [--json out.json] [--unsuited]
+     [--preload]
 """
 
 from __future__ import annotations
@@ -37,8 +45,10 @@ import argparse  # noqa: E402
 import json  # noqa: E402
 import math  # noqa: E402
 import sys  # noqa: E402
+from collections.abc import Iterator  # noqa: E402
 from dataclasses import replace  # noqa: E402
 from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
@@ -49,7 +59,8 @@ from bench._synthetic import METHODS as SYNTHETIC_METHODS  # noqa: E402
 from bench._synthetic import SYNTHETIC, prerendered  # noqa: E402
 from estimation.baseline import run_baseline  # noqa: E402
 from estimation.evaluation import Alignment, ape, lab_errors, rpe  # noqa: E402
-from estimation.pipeline import Method, VoOptions, VoResult, run_vo  # noqa: E402
+from estimation.pipeline import Method, VoOptions, VoResult, _resize_intrinsics, run_vo  # noqa: E402
+from flightkit.datasets.base import Frame  # noqa: E402
 from flightkit.datasets.registry import open_sequence  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -74,6 +85,38 @@ UNSUITED: dict[tuple[str, str], str] = {
 }
 """(sequence, method) pairs not run by default: the method's model does not hold there, so its
 number would mean nothing (``--unsuited`` runs them anyway; docs/estimation.md, "When to use which")."""
+
+
+class Preloaded:
+    """A real sequence decoded and resized into memory once (``--preload``): the frames hold
+    the images at ``size`` (grey with INTER_AREA, depth in metres with INTER_NEAREST, as
+    ``estimation.pipeline.FramePreparer`` resizes them), so the timed runs do no decoding."""
+
+    def __init__(self, seq: Any, size: tuple[int, int]) -> None:
+        self._seq = seq
+        intr, di = seq.intrinsics, seq.depth_intrinsics
+        native = size == (intr.width, intr.height)
+        self.intrinsics = intr if native else _resize_intrinsics(intr, size)
+        self.depth_intrinsics = di if (native or di is None) else _resize_intrinsics(di, size)
+        self.baseline_m = seq.baseline_m
+        self.name = seq.name
+        self._frames: list[Frame] = []
+        for f in seq.frames():
+            gray, right, depth = f.gray, f.right_gray, f.depth_m
+            if not native:
+                gray = cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
+                right = None if right is None else cv2.resize(right, size, interpolation=cv2.INTER_AREA)
+                depth = None if depth is None else cv2.resize(depth, size, interpolation=cv2.INTER_NEAREST)
+            self._frames.append(Frame(f.index, f.stamp_ns, gray, None, right, depth, 1.0, f.T_world_camera))
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    def frames(self, start: int = 0, stop: int | None = None, step: int = 1) -> Iterator[Frame]:
+        yield from self._frames[start:stop:step]
+
+    def __getattr__(self, name: str) -> Any:  # groundtruth(), has_groundtruth(), ...
+        return getattr(self._seq, name)
 
 
 def errors(res: VoResult, seq: object) -> dict[str, float]:
@@ -119,6 +162,9 @@ def main() -> int:
     ap.add_argument("--no-synthetic", action="store_true", help="skip the synthetic lab-pattern sequences")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--unsuited", action="store_true", help="also run the methods marked unsuited (UNSUITED)")
+    ap.add_argument(
+        "--preload", action="store_true", help="decode and resize the real sequences before the timed runs"
+    )
     args = ap.parse_args()
 
     cv2.setNumThreads(1)
@@ -152,6 +198,9 @@ def main() -> int:
                 )
                 print(hdr)
             assert seq is not None
+            if args.preload and key not in SYNTHETIC:
+                seq = Preloaded(seq if not isinstance(seq, Preloaded) else seq._seq, size)
+                print(f"   ({key} at {size[0]}x{size[1]}: {len(seq)} frames decoded and resized before timing)")
             runs: list[tuple[str, VoResult, VoOptions | None]] = []
             for label in methods:
                 if (key, label) in UNSUITED and not args.unsuited:
@@ -224,6 +273,7 @@ def main() -> int:
                     "method": name,
                     "fps": res.fps,
                     "fps_cpu": res.fps_cpu,
+                    "preloaded": bool(args.preload and key not in SYNTHETIC),
                     **err,
                 }
                 row["stage_ms"] = {k: float(np.mean(v)) for k, v in res.stage_ms.items()}

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from estimation.motion import rotation_angle_rad
+from estimation.motion import median, rotation_angle_rad
 
 __all__ = ["KeyframeDecision", "KeyframePolicy"]
 
@@ -67,7 +67,7 @@ class KeyframePolicy:
             scene_depth_m: median depth of the keyframe's points (for the baseline ratio).
         """
         par = (
-            float(np.median(parallax_px))
+            median(np.asarray(parallax_px).reshape(-1))
             if np.ndim(parallax_px) and np.size(parallax_px)
             else float(np.asarray(parallax_px).sum() if np.size(parallax_px) else 0.0)
         )

@@ -253,6 +253,8 @@ def test_vo_options_reject_bad_values() -> None:
         VoOptions(klt_iters=0)
     with pytest.raises(EstimationError, match="pnp_kernel"):
         VoOptions(pnp_kernel="epnp")
+    with pytest.raises(EstimationError, match="kabsch_first_batch"):
+        VoOptions(kabsch_first_batch=0)
 
 
 def test_lk_window_and_pyramid_follow_the_image_size_unless_set() -> None:
@@ -285,3 +287,92 @@ def test_refine_pose_stops_when_converged_at_the_full_answer() -> None:
     full = refine_pose(start, X, px, K, disp, 50.0, iterations=50)
     # Stopping on a small step leaves (far) less than a micrometre / microradian on the table.
     assert_motion(quick, full, 1e-6, 1e-6)
+
+
+def test_refine_pose_huber_keeps_gross_outliers_from_moving_the_pose() -> None:
+    """Pixel and disparity outliers (10 % of each) barely move the polished pose: the Huber
+    weights (1 within the threshold, threshold / |r| beyond) hold them down."""
+    from estimation.motion import refine_pose
+
+    rng = np.random.default_rng(11)
+    X = scene(200)
+    T = true_motion()
+    px = project(T, X) + rng.normal(0, 0.3, (200, 2))
+    Xc = X @ T[:3, :3].T + T[:3, 3]
+    disp = 500.0 * 0.1 / Xc[:, 2] + rng.normal(0, 0.05, 200)
+    disp[rng.permutation(200)[:40]] = np.nan  # depth holes
+    px[rng.permutation(200)[:20]] += rng.uniform(-40, 40, (20, 2))
+    bad_d = rng.permutation(200)[:20]
+    disp[bad_d] = disp[bad_d] * rng.uniform(0.5, 2.0, 20)
+    start = make_T(Rotation.from_euler("y", 1.0, degrees=True).as_matrix() @ T[:3, :3], T[:3, 3] + 0.02)
+    robust = refine_pose(start, X, px, K, disp, 50.0, huber_px=1.0, iterations=20)
+    plain = refine_pose(start, X, px, K, disp, 50.0, huber_px=1e9, iterations=20)  # least squares
+    assert_motion(robust, T, 0.004, np.radians(0.1))
+    dr, dp = invert(T) @ robust, invert(T) @ plain
+    assert np.linalg.norm(dr[:3, 3]) < 0.5 * np.linalg.norm(dp[:3, 3])
+
+
+def test_ransac_rigid_small_first_batch_same_answer_and_still_robust() -> None:
+    rng = np.random.default_rng(4)
+    X = scene(200)
+    T = true_motion()
+    Y = X @ T[:3, :3].T + T[:3, 3] + rng.normal(0, 0.002, X.shape)
+    few = rng.permutation(200)[:4]
+    Y[few] += 0.5  # 2 % outliers, as the RGB-D tracks here
+    full = ransac_rigid(X, Y, threshold_m=0.01, rng=np.random.default_rng(0))
+    small = ransac_rigid(X, Y, threshold_m=0.01, rng=np.random.default_rng(0), first_batch=8)
+    assert full.ok and small.ok
+    np.testing.assert_array_equal(small.inliers, full.inliers)
+    np.testing.assert_allclose(small.T_cur_ref, full.T_cur_ref, atol=1e-12)
+    # With half outliers the first 8 draws are not enough: it draws on (64 at a time).
+    bad = rng.permutation(200)[:100]
+    Y[bad] += rng.uniform(-2.0, 2.0, (100, 3))
+    m = ransac_rigid(X, Y, threshold_m=0.02, rng=np.random.default_rng(1), first_batch=8)
+    assert m.ok and not m.inliers[bad].any()
+    assert_motion(m.T_cur_ref, T, 0.003, np.radians(0.2))
+
+
+def test_median_is_numpys_median_bit_for_bit() -> None:
+    from estimation.motion import median
+
+    rng = np.random.default_rng(2)
+    for n in [*range(1, 40), 199, 200, 301]:
+        for dtype in (np.float64, np.float32):
+            a = (rng.random(n) * 10.0 ** rng.integers(-3, 4)).astype(dtype)
+            a[rng.random(n) < 0.3] = a[0]  # ties
+            assert median(a) == float(np.median(a)), (n, dtype)
+    with_nan = np.array([1.0, np.nan, 3.0, 2.0])
+    assert np.isnan(median(with_nan)) and np.isnan(np.median(with_nan))
+
+
+def test_depth_lookup_rejects_holes_edges_borders_and_range() -> None:
+    from estimation.pipeline import VisualOdometry, VoOptions
+    from flightkit.datasets.base import CameraIntrinsics
+
+    intr = CameraIntrinsics(260.0, 260.0, 159.5, 119.5, 320, 240)
+    vo = VisualOdometry("rgbd-pnp", intr, depth_intrinsics=intr, options=VoOptions(max_depth_m=8.0))
+    depth = np.full((240, 320), 2.0, np.float32)
+    depth[:, 200:] = 3.0  # a step edge between columns 199 and 200
+    depth[50:60, 50:60] = 0.0  # a hole
+    depth[150:160, 50:60] = 9.0  # beyond max_depth_m
+    depth[100, 100] = 2.04  # a small slope within the tolerance (3 % + 1 cm)
+    px = np.array(
+        [
+            [100.2, 100.4],  # flat: 2.04 at the rounded pixel
+            [120.0, 30.0],  # flat: 2.0
+            [199.0, 80.0],  # next to the edge
+            [200.4, 80.0],  # the other side of the edge
+            [55.0, 55.0],  # in the hole
+            [49.0, 55.0],  # next to the hole
+            [55.0, 155.0],  # too far
+            [0.2, 100.0],  # on the border
+            [319.0, 100.0],  # on the border
+            [250.0, 30.0],  # flat: 3.0
+            [-3.0, 500.0],  # outside
+        ],
+        np.float32,
+    )
+    z = vo._depth_at(depth, px)
+    expected = [2.04, 2.0, np.nan, np.nan, np.nan, np.nan, np.nan, np.nan, np.nan, 3.0, np.nan]
+    np.testing.assert_allclose(z, np.array(expected), rtol=1e-6)
+    assert vo._depth_at(depth, np.empty((0, 2), np.float32)).shape == (0,)
