@@ -90,7 +90,7 @@ class SimClock:
         start_ns: the epoch time (ns) that simulated time starts at; defaults to now.
         max_wall_step_s: if set, simulated time advances by at most this much wall time
             (times ``speed``) between two reads of the clock. Use it when everything that
-            shares the clock runs in one process (flight tests, the demo): when the host stalls
+            shares the clock runs in one process (flight tests, the closed-loop demo): when the host stalls
             the process (a 2-core VM whose hypervisor takes the CPU away for 0.3 s has been
             seen), a clock that follows the wall clock would jump by 0.3 s x ``speed`` at once
             and every deadline in the lab (heartbeat, mocap age) would expire together,
