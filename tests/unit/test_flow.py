@@ -101,16 +101,24 @@ def texture(h: int = 240, w: int = 320, seed: int = 0) -> np.ndarray:
     return np.clip(img, 0, 255).astype(np.uint8)
 
 
-def test_klt_tracks_a_shift_and_the_fb_check_drops_lost_points() -> None:
-    big = texture(300, 400)
+def shifted_scene(seed: int, dx_px: int, dy_px: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Two 320x240 views of one texture, the content moved by (dx, dy) px, with a flat,
+    featureless strip (x < 80) in the second where points cannot be tracked; and a 20 px grid
+    of points in the first."""
+    big = texture(300, 400, seed=seed)
     prev = np.ascontiguousarray(big[20:260, 20:340])
-    cur = np.ascontiguousarray(big[23:263, 15:335])  # content moves by (+5, -3) px
-    cur[:, :80] = 128  # a flat, featureless strip: points there cannot be tracked
+    cur = np.ascontiguousarray(big[20 - dy_px : 260 - dy_px, 20 - dx_px : 340 - dx_px])
+    cur[:, :80] = 128
     grid = (
         np.stack(np.meshgrid(np.arange(20, 300, 20), np.arange(20, 220, 20)), -1)
         .reshape(-1, 2)
         .astype(np.float32)
     )
+    return prev, cur, grid
+
+
+def test_klt_tracks_a_shift_and_the_fb_check_drops_lost_points() -> None:
+    prev, cur, grid = shifted_scene(0, 5, -3)
     pts, ok = track_klt(prev, cur, grid, fb_max_px=0.5, win_px=15, levels=3)
     moved = pts - grid
     inside = grid[:, 0] > 110
@@ -125,15 +133,7 @@ def test_klt_tracks_a_shift_and_the_fb_check_drops_lost_points() -> None:
 def test_klt_backward_check_with_fewer_levels_still_drops_lost_points(back_levels: int) -> None:
     """The backward pass starts at the old position, so a shallow pyramid confirms good tracks,
     and points whose patch vanished (a flat strip) still fail to come back."""
-    big = texture(300, 400, seed=3)
-    prev = np.ascontiguousarray(big[20:260, 20:340])
-    cur = np.ascontiguousarray(big[26:266, 11:331])  # content moves by (+9, -6) px
-    cur[:, :80] = 128
-    grid = (
-        np.stack(np.meshgrid(np.arange(20, 300, 20), np.arange(20, 220, 20)), -1)
-        .reshape(-1, 2)
-        .astype(np.float32)
-    )
+    prev, cur, grid = shifted_scene(3, 9, -6)
     pts, ok = track_klt(prev, cur, grid, fb_max_px=0.5, win_px=9, levels=3, back_levels=back_levels, max_iters=10)
     inside = grid[:, 0] > 110
     assert ok[inside].mean() > 0.95
@@ -146,15 +146,7 @@ def test_klt_trusting_the_guess_checks_only_tracks_that_land_away_from_it() -> N
     """With ``trust_guess_px``, tracks that end at their guess are kept without the backward
     pass; a track that ends away from its (wrong) guess is still checked, and one that cannot
     be tracked (its patch is gone) still fails."""
-    big = texture(300, 400, seed=5)
-    prev = np.ascontiguousarray(big[20:260, 20:340])
-    cur = np.ascontiguousarray(big[26:266, 11:331])  # content moves by (+9, -6) px
-    cur[:, :80] = 128
-    grid = (
-        np.stack(np.meshgrid(np.arange(20, 300, 20), np.arange(20, 220, 20)), -1)
-        .reshape(-1, 2)
-        .astype(np.float32)
-    )
+    prev, cur, grid = shifted_scene(5, 9, -6)
     guess = grid + np.float32([9.0, -6.0])
     wrong = np.zeros(len(grid), dtype=bool)
     wrong[::7] = True
