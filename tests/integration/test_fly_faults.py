@@ -140,13 +140,6 @@ def fault(summary: FlightSummary, kind: str) -> Fault:
     return found[0]
 
 
-def runs(t: np.ndarray, max_gap_s: float) -> list[np.ndarray]:
-    """Split sorted times into runs separated by gaps longer than ``max_gap_s``."""
-    if len(t) == 0:
-        return []
-    return np.split(t, np.flatnonzero(np.diff(t) > max_gap_s) + 1)
-
-
 def test_short_mocap_dropout_holds_then_resumes(tmp_path: Path) -> None:
     run = asyncio.run(fly_with_fault(tmp_path, lambda r, _s: r.session.mocap.drop_for(0.6)))
     s = run.summary
@@ -164,8 +157,12 @@ def test_short_mocap_dropout_holds_then_resumes(tmp_path: Path) -> None:
     assert np.all(log["sp_vx_m_s"][held] == 0.0) and np.all(log["sp_vy_m_s"][held] == 0.0)  # zero velocity
     # held for about the dropout (0.6 s less the 0.2 s threshold): the run of HOLD cycles that
     # starts with that fault (any other one-cycle hold is load, see kinds())
-    t_held = log["t_s"][held]
-    hold = next(r for r in runs(t_held, 0.1) if r[0] >= run.injected_at_s)
+    # the hold: HOLD rows from that fault to the first CONTINUE row after it (a starved cycle
+    # inside the hold leaves a gap in the rows but does not end it)
+    t = log["t_s"]
+    resumed = t[pat & (log["action"] == "CONTINUE") & (t > stale.time_s)]
+    end_s = resumed[0] if len(resumed) else np.inf
+    hold = t[held & (t >= stale.time_s - 0.02) & (t < end_s)]
     assert hold[0] == pytest.approx(stale.time_s, abs=0.05)
     assert 0.25 < hold[-1] - hold[0] < 0.6
     # then resumed: the pattern continued after the hold and finished its lap within bounds
@@ -215,16 +212,20 @@ def test_host_stall_slows_the_lab_instead_of_tripping_its_deadlines(tmp_path: Pa
             wall0 = time.monotonic()
             while time.monotonic() - wall0 < 0.6:
                 pass
-            stall["wall_s"] = time.monotonic() - wall0
+            wall_end = time.monotonic()
+            stall["wall_s"] = wall_end - wall0
         finally:
             sys.setswitchinterval(interval)
+        # other threads run before this one reads the clock again: their time counts normally
         stall["sim_s"] = clock.monotonic_s() - before_s
+        stall["after_s"] = (time.monotonic() - wall_end) * SPEED
 
     run = asyncio.run(fly_with_fault(tmp_path, inject))
     s = run.summary
     assert s is not None
     assert stall["wall_s"] >= 0.6
-    assert stall["sim_s"] <= ONE_PROCESS_WALL_STEP_S * SPEED + 0.01  # one limited step, not 3 s
+    # one limited step (plus the time after the stall), not 3 s
+    assert stall["sim_s"] <= ONE_PROCESS_WALL_STEP_S * SPEED + stall["after_s"] + 0.01
     assert s.outcome == "completed", s.format_table()
     assert kinds(s) == [], s.format_table()  # at most a stale-mocap hold, no lost link or mocap
     assert s.laps_completed == 1
