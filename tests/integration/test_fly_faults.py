@@ -224,8 +224,9 @@ def test_host_stall_slows_the_lab_instead_of_tripping_its_deadlines(tmp_path: Pa
     s = run.summary
     assert s is not None
     assert stall["wall_s"] >= 0.6
-    # one limited step (plus the time after the stall), not 3 s
-    assert stall["sim_s"] <= ONE_PROCESS_WALL_STEP_S * SPEED + stall["after_s"] + 0.01
+    # one limited step, not 3 s (plus normal time: after the stall, and up to one GIL switch
+    # interval at its start before the 10 s interval took hold; 0.18 s measured)
+    assert stall["sim_s"] <= 2 * ONE_PROCESS_WALL_STEP_S * SPEED + stall["after_s"] + 0.01
     assert s.outcome == "completed", s.format_table()
     assert kinds(s) == [], s.format_table()  # at most a stale-mocap hold, no lost link or mocap
     assert s.laps_completed == 1
