@@ -24,13 +24,29 @@ import threading
 import time
 from typing import Protocol, runtime_checkable
 
-__all__ = ["ONE_PROCESS_WALL_STEP_S", "Clock", "LockstepClock", "SimClock", "WallClock"]
+__all__ = [
+    "LATE_SLEEPER_LEAD_S",
+    "LATE_SLEEPER_PATIENCE_WALL_S",
+    "ONE_PROCESS_WALL_STEP_S",
+    "Clock",
+    "LockstepClock",
+    "SimClock",
+    "WallClock",
+]
 
 #: The stall limit (``SimClock(max_wall_step_s=...)``) for a simulated lab whose clients share its
 #: clock in one process: 30 ms of wall time, 0.15 s of simulated time at 5x (below the 0.2 s
 #: mocap age at which a flight holds). Normal reads of the clock in a running lab are a few
 #: milliseconds apart (the autopilot ticks every 2-5 ms).
 ONE_PROCESS_WALL_STEP_S = 0.03
+
+#: How far a stall-limited clock runs past the deadline of a sleeper that has not woken yet
+#: (simulated seconds): a quarter of the 0.2 s mocap age at which a flight holds.
+LATE_SLEEPER_LEAD_S = 0.05
+
+#: How long (wall seconds) a stall-limited clock holds for one late sleeper before it lets time
+#: go on without it (a sleeper whose event loop is blocked would otherwise stop the lab).
+LATE_SLEEPER_PATIENCE_WALL_S = 0.5
 
 
 @runtime_checkable
@@ -99,13 +115,29 @@ class SimClock:
             cannot keep up. Sleeps then wait on simulated time in wall slices of at most half
             the limit, so an idle process loses no time. Leave it off (the default) when
             another process runs its own clock at the same speed and compares stamps with it.
+            A stall-limited clock also waits for late sleepers: a thread or coroutine
+            whose sleep deadline has passed but which the host has not run yet (a starved
+            thread on a loaded 2-core machine) holds time at ``late_lead_s`` past its
+            deadline until it wakes, for at most ``LATE_SLEEPER_PATIENCE_WALL_S`` of wall
+            time. A starved mocap publisher or setpoint stream then slows the lab down
+            instead of letting the rest of it see stale data.
+        late_lead_s: with ``max_wall_step_s``, how far (simulated seconds) time may run past
+            the deadline of a sleeper that has not woken yet.
     """
 
-    def __init__(self, speed: float = 1.0, start_ns: int | None = None, max_wall_step_s: float | None = None) -> None:
+    def __init__(
+        self,
+        speed: float = 1.0,
+        start_ns: int | None = None,
+        max_wall_step_s: float | None = None,
+        late_lead_s: float = LATE_SLEEPER_LEAD_S,
+    ) -> None:
         if not speed > 0.0 or speed == float("inf"):
             raise ValueError(f"SimClock speed must be a positive finite number, got {speed}")
         if max_wall_step_s is not None and not 0.0 < max_wall_step_s < float("inf"):
             raise ValueError(f"SimClock max_wall_step_s must be a positive number of seconds, got {max_wall_step_s}")
+        if not 0.0 < late_lead_s < float("inf"):
+            raise ValueError(f"SimClock late_lead_s must be a positive number of seconds, got {late_lead_s}")
         self._speed = float(speed)
         self._wall0 = time.monotonic()
         self._start_ns = time.time_ns() if start_ns is None else int(start_ns)
@@ -114,6 +146,14 @@ class SimClock:
         self._lock = threading.Lock()
         self._sim_s = 0.0
         self._wall_read = self._wall0
+        # sleepers of the stall-limited clock, earliest deadline first (finished ones are dropped lazily)
+        self._late_lead_s = float(late_lead_s)
+        self._sleepers: list[tuple[float, int, _Sleeper]] = []
+        self._seq = itertools.count()
+        self.late_sleeper_holds = 0
+        """Times a late sleeper held time back (stall-limited clock; a diagnostic)."""
+        self.late_sleepers_abandoned = 0
+        """Late sleepers that did not wake within the patience and were left behind."""
 
     @property
     def speed(self) -> float:
@@ -132,8 +172,37 @@ class SimClock:
             step = min(wall - self._wall_read, self._max_wall_step_s)
             self._wall_read = wall
             if step > 0.0:
-                self._sim_s += step * self._speed
+                target = self._sim_s + step * self._speed
+                hold = self._hold_for_late_sleeper(target, wall)
+                self._sim_s = max(self._sim_s, min(target, hold))
             return self._sim_s
+
+    def _hold_for_late_sleeper(self, target_s: float, wall_s: float) -> float:
+        """The time that the earliest late sleeper lets the clock reach (``inf`` if none). Under the lock."""
+        heap = self._sleepers
+        while heap:
+            deadline_s, _, sleeper = heap[0]
+            if sleeper.done:
+                heapq.heappop(heap)
+                continue
+            hold_s = deadline_s + self._late_lead_s
+            if hold_s >= target_s:
+                return hold_s
+            if sleeper.held_since_wall_s is None:
+                sleeper.held_since_wall_s = wall_s
+                self.late_sleeper_holds += 1
+            elif wall_s - sleeper.held_since_wall_s > LATE_SLEEPER_PATIENCE_WALL_S:
+                heapq.heappop(heap)
+                self.late_sleepers_abandoned += 1
+                continue
+            return hold_s
+        return float("inf")
+
+    def _sleeper(self, deadline_s: float) -> _Sleeper:
+        sleeper = _Sleeper()
+        with self._lock:
+            heapq.heappush(self._sleepers, (deadline_s, next(self._seq), sleeper))
+        return sleeper
 
     def time_ns(self) -> int:
         return self._start_ns + int(self.monotonic_s() * 1e9)
@@ -144,11 +213,15 @@ class SimClock:
             return
         remaining = max(0.0, duration_s)
         deadline = self.monotonic_s() + remaining
-        while True:  # at least one pass, so sleep(0) still yields to the event loop
-            await asyncio.sleep(min(remaining / self._speed, 0.5 * self._max_wall_step_s))
-            remaining = deadline - self.monotonic_s()
-            if remaining <= 0.0:
-                return
+        sleeper = self._sleeper(deadline)
+        try:
+            while True:  # at least one pass, so sleep(0) still yields to the event loop
+                await asyncio.sleep(min(remaining / self._speed, 0.5 * self._max_wall_step_s))
+                remaining = deadline - self.monotonic_s()
+                if remaining <= 0.0:
+                    return
+        finally:
+            sleeper.done = True
 
     def sleep_blocking(self, duration_s: float) -> None:
         if self._max_wall_step_s is None:
@@ -156,15 +229,29 @@ class SimClock:
             return
         remaining = max(0.0, duration_s)
         deadline = self.monotonic_s() + remaining
-        while True:
-            time.sleep(min(remaining / self._speed, 0.5 * self._max_wall_step_s))
-            remaining = deadline - self.monotonic_s()
-            if remaining <= 0.0:
-                return
+        sleeper = self._sleeper(deadline)
+        try:
+            while True:
+                time.sleep(min(remaining / self._speed, 0.5 * self._max_wall_step_s))
+                remaining = deadline - self.monotonic_s()
+                if remaining <= 0.0:
+                    return
+        finally:
+            sleeper.done = True
 
     def __repr__(self) -> str:
         limit = "" if self._max_wall_step_s is None else f", max_wall_step_s={self._max_wall_step_s:g}"
         return f"SimClock(speed={self._speed:g}{limit})"
+
+
+class _Sleeper:
+    """One sleep on a stall-limited :class:`SimClock`."""
+
+    __slots__ = ("done", "held_since_wall_s")
+
+    def __init__(self) -> None:
+        self.done = False
+        self.held_since_wall_s: float | None = None
 
 
 class LockstepClock:

@@ -4,7 +4,14 @@ import time
 
 import pytest
 
-from flightkit.clock import Clock, LockstepClock, SimClock, WallClock
+from flightkit.clock import (
+    LATE_SLEEPER_LEAD_S,
+    LATE_SLEEPER_PATIENCE_WALL_S,
+    Clock,
+    LockstepClock,
+    SimClock,
+    WallClock,
+)
 
 
 def test_clocks_satisfy_protocol() -> None:
@@ -112,6 +119,46 @@ def test_stall_limited_sleep_waits_until_the_simulated_deadline(blocking: bool) 
         asyncio.run(clock.sleep(1.0))
     assert clock.monotonic_s() - sim0 >= 1.0
     assert time.monotonic() - wall0 >= 0.0199  # never sooner than speed allows
+
+
+def test_stall_limited_clock_waits_for_a_late_sleeper(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A sleeper that the host does not run at its deadline holds time back, for a while."""
+    wall = _FakeWall()
+    monkeypatch.setattr("flightkit.clock.time.monotonic", wall)
+    clock = SimClock(speed=5.0, max_wall_step_s=0.04)
+    starved = asyncio.new_event_loop()  # a loop that is not run: its sleeper never wakes by itself
+    try:
+        task = starved.create_task(clock.sleep(0.1))
+        starved.run_until_complete(asyncio.sleep(0))  # the sleep starts and registers its deadline
+        assert not task.done()
+        for _ in range(40):  # 0.2 s of wall time, 1 s of simulated time at 5x without the hold
+            wall.now_s += 0.005
+            clock.monotonic_s()
+        assert clock.monotonic_s() == pytest.approx(0.1 + LATE_SLEEPER_LEAD_S)
+        assert clock.late_sleeper_holds == 1
+        wall.now_s += LATE_SLEEPER_PATIENCE_WALL_S  # it stays late: time goes on without it
+        for _ in range(10):
+            wall.now_s += 0.005
+            clock.monotonic_s()
+        assert clock.late_sleepers_abandoned == 1
+        assert clock.monotonic_s() == pytest.approx(0.15 + 0.04 * 5.0 + 0.045 * 5.0)
+        task.cancel()
+        starved.run_until_complete(asyncio.gather(task, return_exceptions=True))
+    finally:
+        starved.close()
+
+
+def test_stall_limited_clock_is_not_held_by_sleepers_that_woke(monkeypatch: pytest.MonkeyPatch) -> None:
+    wall = _FakeWall()
+    monkeypatch.setattr("flightkit.clock.time.monotonic", wall)
+    monkeypatch.setattr("flightkit.clock.time.sleep", lambda s: setattr(wall, "now_s", wall.now_s + s))
+    clock = SimClock(speed=5.0, max_wall_step_s=0.04)
+    for _ in range(20):  # a thread ticking at 50 Hz of simulated time
+        clock.sleep_blocking(0.02)
+    assert clock.monotonic_s() == pytest.approx(0.4, abs=1e-6)
+    assert clock.late_sleeper_holds == 0
+    wall.now_s += 0.2
+    assert clock.monotonic_s() == pytest.approx(0.4 + 0.04 * 5.0)  # only the stall limit applies
 
 
 def test_stall_limited_sleep_zero_still_yields() -> None:
