@@ -17,7 +17,7 @@ from typing import Any
 import pytest
 from pymavlink import mavutil
 
-from flightkit.clock import SimClock
+from flightkit.clock import ONE_PROCESS_WALL_STEP_S, SimClock
 from flightkit.errors import EndpointError
 from flightkit.sim.autopilot import AutopilotOptions
 from flightkit.sim.lab import SimLab
@@ -71,9 +71,7 @@ class Client:
         kind = mav.MAV_TYPE_GCS if self.gcs else mav.MAV_TYPE_ONBOARD_CONTROLLER
         self.conn.mav.heartbeat_send(kind, mav.MAV_AUTOPILOT_INVALID, 0, 0, 0)
 
-    def recv(
-        self, types: str | list[str], cond: Callable[[Any], bool] = lambda m: True, timeout_s: float = 5.0
-    ) -> Any:
+    def recv(self, types: str | list[str], cond: Callable[[Any], bool] = lambda m: True, timeout_s: float = 5.0) -> Any:
         """Next message of ``types`` satisfying ``cond`` within ``timeout_s`` wall seconds."""
         deadline = _wall() + timeout_s
         want = [types] if isinstance(types, str) else types
@@ -160,7 +158,8 @@ def make_lab() -> Iterator[Callable[..., SimLab]]:
         opts = kw.pop("options", AutopilotOptions())
         kw["options"] = replace(opts, stream_rates_hz={**QUIET_STREAMS, **opts.stream_rates_hz})
         kw.setdefault("url", "udpin:127.0.0.1:0")
-        lab = SimLab(autopilot=autopilot, clock=SimClock(speed), **kw)
+        # the test's client shares the lab's process and clock: stall-limited (docs/sim.md "Time")
+        lab = SimLab(autopilot=autopilot, clock=SimClock(speed, max_wall_step_s=ONE_PROCESS_WALL_STEP_S), **kw)
         lab.start()
         labs.append(lab)
         return lab
@@ -176,6 +175,18 @@ def clients() -> Iterator[list[Client]]:
     yield made
     for c in made:
         c.close()
+
+
+def _event_s(lab: SimLab, kind: str, detail: str = "", after_s: float = -math.inf) -> float:
+    """When the lab logged the first ``kind`` event containing ``detail`` after ``after_s`` (clock time).
+
+    Timing checks use these stamps, taken by the simulator as it acts, rather than the time the
+    test's client happened to receive the consequence (at 10x, 40 ms of wall time between the
+    datagram and this thread's next turn are 0.4 s).
+    """
+    found = [e.stamp_s for e in lab.event_log if e.kind == kind and detail in e.detail and e.stamp_s > after_s]
+    assert found, [f"{e.stamp_s:.2f} {e.kind} {e.detail}" for e in lab.event_log]
+    return found[0]
 
 
 def _client(clients: list[Client], lab: SimLab, **kw: Any) -> Client:
@@ -251,10 +262,7 @@ def test_unknown_command_is_unsupported(make_lab: Callable[..., SimLab], clients
 
 def test_request_autopilot_version(make_lab: Callable[..., SimLab], clients: list[Client]) -> None:
     c = _client(clients, make_lab("px4"))
-    assert (
-        c.command(mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
-        == mav.MAV_RESULT_ACCEPTED
-    )
+    assert c.command(mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION) == mav.MAV_RESULT_ACCEPTED
     ver = c.recv("AUTOPILOT_VERSION")
     for cap in (
         mav.MAV_PROTOCOL_CAPABILITY_MAVLINK2,
@@ -315,9 +323,7 @@ def test_timesync_is_answered(make_lab: Callable[..., SimLab], clients: list[Cli
 # ---------------------------------------------------------------- signing
 
 
-def test_signing_ignores_unsigned_and_signs_outgoing(
-    make_lab: Callable[..., SimLab], clients: list[Client]
-) -> None:
+def test_signing_ignores_unsigned_and_signs_outgoing(make_lab: Callable[..., SimLab], clients: list[Client]) -> None:
     key = bytes(range(32))
     lab = make_lab("px4", options=AutopilotOptions(signing_key=key))
     unsigned = _client(clients, lab)
@@ -339,9 +345,7 @@ def test_signing_ignores_unsigned_and_signs_outgoing(
 # ---------------------------------------------------------------- PX4 behaviour
 
 
-def test_px4_arming_refused_until_estimator_ready(
-    make_lab: Callable[..., SimLab], clients: list[Client]
-) -> None:
+def test_px4_arming_refused_until_estimator_ready(make_lab: Callable[..., SimLab], clients: list[Client]) -> None:
     lab = make_lab("px4", ready_after_s=3.0)
     c = _client(clients, lab)
     c.wait_heartbeat(lambda m: True)
@@ -352,9 +356,7 @@ def test_px4_arming_refused_until_estimator_ready(
     assert c.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mav.MAV_RESULT_ACCEPTED
 
 
-def test_px4_statustext_only_after_gcs_heartbeat(
-    make_lab: Callable[..., SimLab], clients: list[Client]
-) -> None:
+def test_px4_statustext_only_after_gcs_heartbeat(make_lab: Callable[..., SimLab], clients: list[Client]) -> None:
     lab = make_lab("px4", ready_after_s=100.0)
     c = _client(clients, lab, gcs=False)
     c.wait_heartbeat(lambda m: True)
@@ -391,10 +393,10 @@ def test_px4_offboard_rules_and_loss_failsafe(make_lab: Callable[..., SimLab], c
     c.stop_stream()
     t_stop = c.last_sent_s  # the last setpoint on the wire
     hb = c.wait_heartbeat(lambda m: m.custom_mode != PX4_OFFBOARD)
-    t_switch = lab.clock.monotonic_s()
+    t_switch = _event_s(lab, "mode", "OFFBOARD -> POSCTL", after_s=t_stop)
     assert hb.custom_mode == PX4_POSCTL
     assert 0.9 <= t_switch - t_stop <= 1.5, t_switch - t_stop
-    _wait_local(c, lambda m: math.hypot(m.vx, m.vy) < 0.1)
+    lab.wait_until(lambda: math.hypot(*lab.truth().vel_enu_m_s[:2]) < 0.1, timeout_s=5.0, what="braking")
     assert lab.clock.monotonic_s() - t_switch < 2.5
     # in the air, OFFBOARD is refused until setpoints have streamed for ~1 s
     assert c.set_mode(PX4_OFFBOARD) == mav.MAV_RESULT_TEMPORARILY_REJECTED
@@ -434,10 +436,7 @@ def test_px4_takeoff_hold_land_autodisarm(make_lab: Callable[..., SimLab], clien
     assert home.altitude == pytest.approx(HOME_AMSL_M * 1000, abs=20)
     # PX4 takes param7 as AMSL and raises it to at least MIS_TAKEOFF_ALT (2.5 m)
     nan = float("nan")
-    assert (
-        c.command(mav.MAV_CMD_NAV_TAKEOFF, nan, 0, 0, nan, nan, nan, HOME_AMSL_M + 3.0)
-        == mav.MAV_RESULT_ACCEPTED
-    )
+    assert c.command(mav.MAV_CMD_NAV_TAKEOFF, nan, 0, 0, nan, nan, nan, HOME_AMSL_M + 3.0) == mav.MAV_RESULT_ACCEPTED
     c.wait_heartbeat(lambda m: m.custom_mode == PX4_TAKEOFF)
     c.recv("EXTENDED_SYS_STATE", lambda m: m.landed_state == mav.MAV_LANDED_STATE_TAKEOFF, timeout_s=10.0)
     c.wait_heartbeat(lambda m: m.custom_mode == PX4_HOLD, timeout_s=10.0)
@@ -447,9 +446,9 @@ def test_px4_takeoff_hold_land_autodisarm(make_lab: Callable[..., SimLab], clien
     assert c.command(mav.MAV_CMD_NAV_LAND) == mav.MAV_RESULT_ACCEPTED
     c.recv("EXTENDED_SYS_STATE", lambda m: m.landed_state == mav.MAV_LANDED_STATE_LANDING)
     c.recv("EXTENDED_SYS_STATE", lambda m: m.landed_state == mav.MAV_LANDED_STATE_ON_GROUND, timeout_s=10.0)
-    t_land = lab.clock.monotonic_s()
     c.wait_heartbeat(lambda m: not m.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED, timeout_s=10.0)
-    assert 1.5 <= lab.clock.monotonic_s() - t_land <= 3.0  # COM_DISARM_LAND = 2 s
+    t_land = _event_s(lab, "landed")
+    assert 1.5 <= _event_s(lab, "disarmed", after_s=t_land) - t_land <= 3.0  # COM_DISARM_LAND = 2 s
     assert lab.truth().pos_enu_m[2] == 0.0
 
 
@@ -496,18 +495,16 @@ def test_ardupilot_guided_needs_position_then_timeout_brake(
     for _ in range(10):
         c.send_setpoint(mav.MAV_FRAME_LOCAL_NED, VEL_ONLY, _vel(1.0, 0.0, 0.0))
         lab.clock.sleep_blocking(0.1)
-    t_last = lab.clock.monotonic_s()
+    t_last = c.last_sent_s
     c.recv("STATUSTEXT", lambda m: "timeout" in m.text, timeout_s=10.0)
-    assert 2.8 <= lab.clock.monotonic_s() - t_last <= 3.4
+    assert 2.8 <= _event_s(lab, "failsafe", "command timeout") - t_last <= 3.4
     stop = _wait_local(c, lambda m: math.hypot(m.vx, m.vy) < 0.05, timeout_s=10.0)
     moved = stop.x - start.x
     assert 3.3 <= moved <= 4.6, moved  # ~4 s at 1 m/s, minus the acceleration lag, plus braking
     assert lab.autopilot.mode.value == "GUIDED"
 
 
-def test_ardupilot_body_frame_and_land_disarms(
-    make_lab: Callable[..., SimLab], clients: list[Client]
-) -> None:
+def test_ardupilot_body_frame_and_land_disarms(make_lab: Callable[..., SimLab], clients: list[Client]) -> None:
     lab = make_lab("ardupilot", start_yaw_rad=0.0)  # facing world +x = east
     c = _client(clients, lab)
     assert c.set_mode(4) == mav.MAV_RESULT_ACCEPTED
