@@ -1495,8 +1495,14 @@ def run_vo(
     t0 = time.perf_counter()
     vo: VisualOdometry | None = None
     poses: list[FramePose] = []
+    incomplete = 0
     for i, frame in enumerate(sequence.frames(start, stop)):
         pf = prep(frame)
+        if (m.needs_depth and pf.depth_m is None) or (m is Method.STEREO and pf.right_gray is None):
+            # a partner image that was never recorded (dropped, or the recording stopped between the
+            # colour and the depth image): skip the frame, count it, keep the run
+            incomplete += 1
+            continue
         if vo is None:
             T0 = pf.T_world_camera if (init_from_groundtruth and pf.T_world_camera is not None) else None
             vo = VisualOdometry(
@@ -1513,6 +1519,19 @@ def run_vo(
         if progress is not None:
             progress(i + 1, total)
     wall = time.perf_counter() - t0
+    if incomplete:
+        part = "depth" if m.needs_depth else "right"
+        logger.warning(
+            "%s: skipped %d of %d frames that have no %s image (dropped, or cut off when the recording stopped)",
+            sequence.name,
+            incomplete,
+            total,
+            part,
+        )
+        if not poses:
+            raise EstimationError(
+                f"none of the {total} frames of {sequence.name} has a {part} image; method {m.value!r} needs one"
+            )
     return collect_result(
         poses, m.value, sequence.name, wall, (prep.intrinsics.width, prep.intrinsics.height)
     )

@@ -41,10 +41,6 @@ def truth_at(t_s: float) -> Transform:
     return Transform.from_xyz_yaw([math.cos(a), math.sin(a), 1.5], a + math.pi)
 
 
-
-
-
-
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, LabConfig, int]:
     """One recording shared by the tests of this module: 1 s of sim at 320x240 + stereo."""
@@ -249,6 +245,45 @@ def test_mcap_sequence_reads_the_recording(recording: tuple[Path, LabConfig, int
     seq = open_sequence(out, T_body_camera=lab.camera.T_body_camera.to_transform())
     assert len(seq) == frames and seq.depth_intrinsics is not None
     assert seq.baseline_m == pytest.approx(lab.camera.stereo_baseline_m)
+
+
+def test_vo_runs_on_a_recording_cut_between_colour_and_depth(
+    recording: tuple[Path, LabConfig, int], tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A recording that stopped after the last colour image but before its depth image (or lost
+    that depth message) still gives a trajectory: the incomplete frame is skipped and counted."""
+    from mcap.writer import Writer
+
+    from estimation.pipeline import run_vo
+
+    out, lab, frames = recording
+    cut = tmp_path / "cut.mcap"
+    with out.open("rb") as src, cut.open("wb") as dst:
+        reader = make_reader(src)
+        writer = Writer(dst)
+        writer.start(profile="ros2", library="test")
+        schema_ids: dict[int, int] = {}
+        channel_ids: dict[int, int] = {}
+        messages = list(reader.iter_messages(log_time_order=True))
+        depth = [i for i, (_s, c, _m) in enumerate(messages) if c.topic == "/uav1/camera/depth/image"]
+        for i, (schema, channel, message) in enumerate(messages):
+            if i == depth[-1]:
+                continue  # the last depth image never made it to the file
+            if schema is not None and schema.id not in schema_ids:
+                schema_ids[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
+            if channel.id not in channel_ids:
+                channel_ids[channel.id] = writer.register_channel(
+                    channel.topic, channel.message_encoding, schema_ids.get(channel.schema_id, 0), channel.metadata
+                )
+            writer.add_message(channel_ids[channel.id], message.log_time, message.data, message.publish_time)
+        writer.finish()
+    seq = open_sequence(cut, T_body_camera=lab.camera.T_body_camera.to_transform())
+    assert len(seq) == frames
+    with caplog.at_level("WARNING", logger="estimation.pipeline"):
+        result = run_vo(seq, "rgbd-pnp", init_from_groundtruth=True)
+    assert len(result) == frames - 1
+    assert result.stamps_ns[-1] == seq.stamps_ns()[-2]
+    assert "skipped 1 of" in caplog.text and "no depth image" in caplog.text
 
 
 def test_camera_thread_publishes_every_due_frame(sessions: tuple[object, object]) -> None:
