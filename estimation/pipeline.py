@@ -17,9 +17,11 @@ Live (one frame at a time, e.g. from the bus; publish ``FramePose`` from ``on_po
 
 Methods (``Method``):
     ``rgbd-pnp``        keyframe 3D points (depth) -> current pixels, PnP + RANSAC
-    ``rgbd-essential``  5-point essential matrix keyframe -> current, metric scale from depth;
-                        kept when it reprojects the keyframe's 3D points (a floor makes the
-                        5-point solution ambiguous), least squares + depth polish on those
+    ``rgbd-essential``  essential matrix keyframe -> current (from the constant-velocity
+                        prediction when it explains the tracks, else 5-point RANSAC), metric
+                        scale and cheirality from depth; kept when it reprojects the keyframe's
+                        3D points (a floor makes the 5-point solution ambiguous), least
+                        squares + depth polish on those
     ``rgbd-kabsch``     3D-3D (depth in both frames), Kabsch in a vectorised RANSAC
     ``stereo``          keyframe 3D points (sparse stereo) -> current pixels, PnP (RANSAC or
                         rigidity max-clique inliers)
@@ -49,6 +51,7 @@ import enum
 import logging
 import math
 import time
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -64,6 +67,7 @@ from estimation.keyframes import KeyframePolicy
 from estimation.matching import match_descriptors, match_stereo_rows
 from estimation.motion import (
     Motion,
+    essential_from_prior,
     essential_metric,
     invert,
     make_T,
@@ -172,6 +176,29 @@ class VoOptions:
         essential_min_parallax_px: below this median image motion since the keyframe the
             essential matrix is ill-conditioned; ``rgbd-essential`` then solves the step by
             PnP on the same tracks (and keeps the keyframe until the parallax is there).
+        essential_cheirality: how rgbd-essential picks the motion among the essential
+            matrix's four: ``"depth"`` (the rotation whose metric motion, scale from the
+            keyframe depth, reprojects most keyframe points;
+            :func:`~estimation.motion.pose_from_essential`) or ``"opencv"`` (``recoverPose``,
+            the code before 2026-11-22: its triangulation drops points beyond 50 baselines, so
+            on 7-Scenes 31 of 49 essential matrices were discarded and a PnP RANSAC ran).
+        essential_prior_gate_px, essential_prior_min_fraction, essential_prior_iterations:
+            rgbd-essential skips the 5-point RANSAC when the constant-velocity prediction
+            explains the tracks: when at least ``essential_prior_min_fraction`` of them lie
+            within ``essential_prior_gate_px`` (Sampson distance) of the predicted epipolar
+            geometry, those are fitted by Gauss-Newton/LM on the Sampson distance (5 DoF,
+            ``essential_prior_iterations`` steps, started at the prediction), the inliers are
+            the tracks within ``essential_threshold_px`` of the result, and the metric scale
+            comes from depth as after RANSAC
+            (:func:`~estimation.motion.essential_from_prior`); else RANSAC (0: always RANSAC).
+            Taken on 47-48 of 49 steps on 7-Scenes and 145-163 of 180-210 on the synthetic
+            patterns; more iterations measured no better (the reprojection fit that follows
+            converges from one step).
+        essential_pnp_prior: rgbd-essential, steps with too little parallax for the essential
+            matrix (or where it fails): rgbd-pnp's prior-guided PnP (SQPnP on the tracks the
+            prediction explains, ``pnp_prior_*``) before PnP RANSAC. Off: measured twice
+            (2026-11-21 and -22) with mixed ATE (rectangle 0.0038 -> 0.0042 m, lawnmower
+            0.0044 -> 0.0040 m) and no clear speed gain (34-53 steps of 180-210).
         min_inliers: fewer inliers -> the estimate is rejected.
         max_speed_m_s, max_rate_rad_s: sanity limits of one step.
         min_depth_m, max_depth_m: accepted depth range (stereo and depth images).
@@ -189,11 +216,13 @@ class VoOptions:
             and disparity-range checks alone reject bad matches).
         orb_fallback: match ORB against the keyframe when tracking fails.
         keyframes: the keyframe policy.
-        parallax_ref_width_px: rgbd-pnp on images narrower than this: the keyframe parallax
-            is scaled to this width, so keyframes come after the same angle of view as at this
-            width (at 320 px, 25 px of parallax was twice the angle of 640 px; 0: raw pixels).
-            Only rgbd-pnp, where it lowered the ATE on every sequence; it raised rgbd-essential's
-            on 7-Scenes (its 5-point needs the parallax) and rgbd-kabsch's on the circle.
+        parallax_ref_width_px: rgbd-pnp and rgbd-essential on images narrower than this: the
+            keyframe parallax is scaled to this width, so keyframes come after the same angle
+            of view as at this width (at 320 px, 25 px of parallax was twice the angle of 640
+            px; 0: raw pixels). It lowered rgbd-pnp's ATE on every sequence; rgbd-essential's
+            rose on 7-Scenes with the 5-point RANSAC alone, and fell on 7-Scenes and the three
+            synthetic patterns once the prior-guided essential matrix and the depth cheirality
+            were there (2026-11-22). Not rgbd-kabsch (the circle's ATE rose).
         ba_window: local bundle adjustment over this many keyframes (0: off).
         flow_threshold_px: flow RANSAC threshold (pixels per frame).
         flow_depth: flow with stereo (no depth image): ``"altitude"`` (one depth for all
@@ -224,6 +253,11 @@ class VoOptions:
     kabsch_first_batch: int = 8
     essential_threshold_px: float = 1.0
     essential_min_parallax_px: float = 3.0
+    essential_cheirality: str = "depth"
+    essential_prior_gate_px: float = 2.0
+    essential_prior_min_fraction: float = 0.9
+    essential_prior_iterations: int = 1
+    essential_pnp_prior: bool = False
     min_inliers: int = 12
     max_speed_m_s: float = 40.0
     max_rate_rad_s: float = 8.0
@@ -247,21 +281,32 @@ class VoOptions:
         if self.inliers not in ("ransac", "rigidity"):
             raise EstimationError(f"VoOptions.inliers is {self.inliers!r}; use 'ransac' or 'rigidity'")
         if self.pnp_method not in ("iterative", "epnp", "sqpnp"):
-            raise EstimationError(
-                f"VoOptions.pnp_method is {self.pnp_method!r}; use iterative, epnp or sqpnp"
-            )
+            raise EstimationError(f"VoOptions.pnp_method is {self.pnp_method!r}; use iterative, epnp or sqpnp")
         if self.pnp_kernel not in (None, "p3p", "ap3p"):
             raise EstimationError(f"VoOptions.pnp_kernel is {self.pnp_kernel!r}; use 'ap3p', 'p3p' or None")
         if self.flow_depth not in ("altitude", "stereo"):
             raise EstimationError(f"VoOptions.flow_depth is {self.flow_depth!r}; use 'altitude' or 'stereo'")
+        if self.essential_cheirality not in ("opencv", "depth"):
+            raise EstimationError(
+                f"VoOptions.essential_cheirality is {self.essential_cheirality!r}; use 'opencv' or 'depth'"
+            )
+        if (
+            self.essential_prior_gate_px < 0
+            or not 0 < self.essential_prior_min_fraction <= 1
+            or self.essential_prior_iterations < 1
+        ):
+            raise EstimationError(
+                f"VoOptions.essential_prior_gate_px={self.essential_prior_gate_px}, "
+                f"essential_prior_min_fraction={self.essential_prior_min_fraction}, "
+                f"essential_prior_iterations={self.essential_prior_iterations}; use a distance >= 0 "
+                "(0: off), a fraction in (0, 1] and at least 1 iteration"
+            )
         if self.kabsch_first_batch < 1:
             raise EstimationError(
                 f"VoOptions.kabsch_first_batch is {self.kabsch_first_batch}; use at least 1 (8 is typical)"
             )
         if self.max_features < 20:
-            raise EstimationError(
-                f"VoOptions.max_features is {self.max_features}; use at least 20 (300 is typical)"
-            )
+            raise EstimationError(f"VoOptions.max_features is {self.max_features}; use at least 20 (300 is typical)")
         if (
             0 < self.klt_win_px < 5
             or self.klt_win_px < 0
@@ -282,8 +327,7 @@ class VoOptions:
             )
         if not 0 < self.min_depth_m < self.max_depth_m:
             raise EstimationError(
-                f"VoOptions depth range [{self.min_depth_m}, {self.max_depth_m}] m is empty; "
-                "set 0 < min < max"
+                f"VoOptions depth range [{self.min_depth_m}, {self.max_depth_m}] m is empty; set 0 < min < max"
             )
 
 
@@ -469,7 +513,7 @@ class VisualOdometry:
         self.klt_win = self.opts.klt_win_px or (9 if small else 11)
         ref_w = self.opts.parallax_ref_width_px
         self.parallax_scale = (
-            max(1.0, ref_w / w) if ref_w and self.method is Method.RGBD_PNP else 1.0
+            max(1.0, ref_w / w) if ref_w and self.method in (Method.RGBD_PNP, Method.RGBD_ESSENTIAL) else 1.0
         )
         self.klt_levels = 3 if self.opts.klt_levels is None else self.opts.klt_levels
         self.klt_back_levels = min(self.opts.klt_back_levels, self.klt_levels)
@@ -509,6 +553,8 @@ class VisualOdometry:
         self.ba_window: list[tuple[F64, npt.NDArray[np.int64], F64, F64]] = []
         self.ba_baseline_m = float(baseline_m) if baseline_m else 0.1  # virtual baseline for depth
         self.landmarks: dict[int, F64] = {}
+        # How the motion of each frame was found (diagnostics: "essential-prior", ...).
+        self.path_counts: Counter[str] = Counter()
 
     # ------------------------------------------------------------------ helpers
     def _undistort(self, px: F32) -> F64:
@@ -586,9 +632,7 @@ class VisualOdometry:
 
     def _max_stereo_depth_m(self) -> float:
         b = self.rig.baseline_m if self.rig is not None else 0.0
-        return (
-            min(self.opts.max_depth_m, self.opts.max_depth_baselines * b) if b > 0 else self.opts.max_depth_m
-        )
+        return min(self.opts.max_depth_m, self.opts.max_depth_baselines * b) if b > 0 else self.opts.max_depth_m
 
     def _plausible(self, T_cur_prev: F64, dt_s: float) -> bool:
         dt = max(dt_s, 1e-3)
@@ -676,9 +720,7 @@ class VisualOdometry:
         if remeasure or keep_X_cur is None or n_keep == 0:
             px_m = np.concatenate([keep_px.astype(np.float32), new_px]) if n_keep else new_px
             init: F32 | float = (
-                np.concatenate([d_keep, np.full(len(new_px), fb_init, np.float32)])
-                if len(d_keep)
-                else fb_init
+                np.concatenate([d_keep, np.full(len(new_px), fb_init, np.float32)]) if len(d_keep) else fb_init
             )
             X_m, ok_m = self._points_3d(px_m, right_gray, pyr, depth_m, init)
             X_k, ok_k = X_m[:n_keep], ok_m[:n_keep]
@@ -691,9 +733,7 @@ class VisualOdometry:
             assert keep_w is not None
             w_new = np.where(ok_k, self._depth_weight(np.where(ok_k, X_k[:, 2], 1.0)), 0.0)
             wsum = keep_w + w_new
-            X_keep = (
-                keep_X_cur * keep_w[:, None] + np.where(ok_k[:, None], X_k, 0.0) * w_new[:, None]
-            ) / wsum[:, None]
+            X_keep = (keep_X_cur * keep_w[:, None] + np.where(ok_k[:, None], X_k, 0.0) * w_new[:, None]) / wsum[:, None]
             ok_keep = np.isfinite(X_keep).all(axis=1) & (X_keep[:, 2] > self.opts.min_depth_m)
         else:
             X_keep, wsum, ok_keep = np.empty((0, 3)), np.empty(0), np.zeros(0, dtype=bool)
@@ -731,9 +771,7 @@ class VisualOdometry:
                 med = float(np.median(fb / self.kf_X[:, 2])) if len(self.kf_X) else 0.0
                 init = np.where(np.isfinite(init), init, med).astype(np.float32)
                 # Far points too: recovering the pose matters more here than their depth noise.
-                X, ok = self._points_3d(
-                    f.pts_px, self.kf_right, self.kf_gray, None, init, self.opts.max_depth_m
-                )
+                X, ok = self._points_3d(f.pts_px, self.kf_right, self.kf_gray, None, init, self.opts.max_depth_m)
             else:
                 assert self.kf_depth is not None
                 z = self._depth_at(self.kf_depth, f.pts_px)
@@ -780,14 +818,36 @@ class VisualOdometry:
             und_kf = self._undistort(px_kf)
             parallax = median(np.linalg.norm(und_cur - und_kf, axis=1))
             m = Motion(guess, np.zeros(len(px_cur), dtype=bool), False)
+            m_prior = None
             if parallax >= o.essential_min_parallax_px:
-                m = essential_metric(
-                    und_kf,
-                    und_cur,
-                    self.K,
-                    X_kf,
-                    threshold_px=o.essential_threshold_px,
-                    min_inliers=o.min_inliers,
+                if o.essential_prior_gate_px > 0 and self.T_step is not None:
+                    # The constant-velocity prediction usually explains the tracks: then no RANSAC.
+                    m_prior = essential_from_prior(
+                        und_kf,
+                        und_cur,
+                        self.K,
+                        X_kf,
+                        guess,
+                        gate_px=o.essential_prior_gate_px,
+                        threshold_px=o.essential_threshold_px,
+                        min_fraction=o.essential_prior_min_fraction,
+                        min_inliers=o.min_inliers,
+                        iterations=o.essential_prior_iterations,
+                    )
+                self.path_counts["essential-prior" if m_prior is not None else "essential-ransac"] += 1
+                m = (
+                    m_prior
+                    if m_prior is not None
+                    else essential_metric(
+                        und_kf,
+                        und_cur,
+                        self.K,
+                        X_kf,
+                        threshold_px=o.essential_threshold_px,
+                        min_inliers=o.min_inliers,
+                        cheirality=o.essential_cheirality,
+                        agree_px=2.0 * o.reproj_px,
+                    )
                 )
             if m.ok:
                 # With little parallax or a mostly planar scene (the floor) the 5-point RANSAC
@@ -802,6 +862,9 @@ class VisualOdometry:
                 else:
                     # Levenberg-Marquardt on the reprojection of those points from the 5-point
                     # motion (as PnP's final fit), inliers re-selected, before the polish below.
+                    # Needed after the prior-guided path too: at 1-5 cm baselines the epipolar
+                    # geometry pins the translation direction only to a few degrees, and the
+                    # depth polish alone (4 Huber steps) kept that error (ATE 0.015-0.34 m).
                     rvec = cv2.Rodrigues(m.T_cur_ref[:3, :3])[0]
                     tvec = m.T_cur_ref[:3, 3].reshape(3, 1).copy()
                     rvec, tvec = cv2.solvePnPRefineLM(X_kf[agree], und_cur[agree], self.K, None, rvec, tvec)
@@ -812,7 +875,13 @@ class VisualOdometry:
                         if np.count_nonzero(mask) >= o.min_inliers
                         else Motion(m.T_cur_ref, agree, True)
                     )
+            if not m.ok and o.essential_pnp_prior and o.refine_with_depth and self.T_step is not None:
+                m_pp = self._pnp_from_prior(X_kf, px_cur, und_cur, guess, depth_m, pyr, right_gray)
+                if m_pp is not None:
+                    self.path_counts["pnp-prior"] += 1
+                    return m_pp
             if not m.ok:
+                self.path_counts["pnp"] += 1
                 m = pnp(
                     X_kf,
                     und_cur,
@@ -862,9 +931,7 @@ class VisualOdometry:
         idx = np.flatnonzero(sel)
         if o.pnp_prior_gate_px > 0 and o.refine_with_depth and self.method is Method.RGBD_PNP:
             # The constant-velocity prediction usually explains the tracks: then no RANSAC.
-            m_prior = self._pnp_from_prior(
-                X_kf[idx], px_cur[idx], und_cur[idx], guess, depth_m, pyr, right_gray
-            )
+            m_prior = self._pnp_from_prior(X_kf[idx], px_cur[idx], und_cur[idx], guess, depth_m, pyr, right_gray)
             if m_prior is not None:
                 mask = np.zeros(len(px_cur), dtype=bool)
                 mask[idx] = m_prior.inliers
@@ -1272,10 +1339,7 @@ class VisualOdometry:
         self.T_world_cam = T_new.copy()
         T_kf_world = invert(T_new)
         Xw = np.stack(
-            [
-                self.landmarks.get(int(k), None) if int(k) in self.landmarks else np.full(3, np.nan)
-                for k in self.kf_ids
-            ]
+            [self.landmarks.get(int(k), None) if int(k) in self.landmarks else np.full(3, np.nan) for k in self.kf_ids]
         )
         Xk = Xw @ T_kf_world[:3, :3].T + T_kf_world[:3, 3]
         good = np.isfinite(Xk).all(axis=1) & (Xk[:, 2] > self.opts.min_depth_m)
@@ -1363,9 +1427,7 @@ class VisualOdometry:
             mask = np.full(gray.shape, 255, np.uint8)
             for x, y in self.flow_pts:
                 cv2.circle(mask, (int(x), int(y)), 8, 0, -1)
-            new = shi_tomasi(
-                gray, o.max_features - len(self.flow_pts), 0.01, max(5.0, self.intr.width / 60), mask
-            )
+            new = shi_tomasi(gray, o.max_features - len(self.flow_pts), 0.01, max(5.0, self.intr.width / 60), mask)
             self.flow_pts = np.concatenate([self.flow_pts, new]) if len(new) else self.flow_pts
             timer.lap("keyframe")
         if per_point_stereo:
@@ -1375,9 +1437,7 @@ class VisualOdometry:
         self.prev_depth = depth_m
         return self._emit(stamp_ns, n_inl, quality, refill, timer)
 
-    def _flow_stereo_depth(
-        self, gray: npt.NDArray[np.uint8], right_gray: npt.NDArray[np.uint8] | None
-    ) -> None:
+    def _flow_stereo_depth(self, gray: npt.NDArray[np.uint8], right_gray: npt.NDArray[np.uint8] | None) -> None:
         """Per-point depth of the flow points by sparse stereo (for the next frame's velocity)."""
         if right_gray is None or self.rig is None:
             raise EstimationError("flow_depth='stereo' needs the right image in every frame")
@@ -1485,9 +1545,7 @@ def run_vo(
             f"method {m.value!r} needs depth images but {sequence.name} has none; try 'stereo' or 'flow'"
         )
     if m is Method.STEREO and not sequence.baseline_m:
-        raise EstimationError(
-            f"method 'stereo' needs a stereo pair but {sequence.name} has none; try an rgbd method"
-        )
+        raise EstimationError(f"method 'stereo' needs a stereo pair but {sequence.name} has none; try an rgbd method")
     if m is Method.FLOW and sequence.depth_intrinsics is None and not sequence.baseline_m:
         raise EstimationError(f"method 'flow' needs depth or stereo but {sequence.name} has neither")
     prep = FramePreparer(sequence, m, size)
@@ -1532,14 +1590,10 @@ def run_vo(
             raise EstimationError(
                 f"none of the {total} frames of {sequence.name} has a {part} image; method {m.value!r} needs one"
             )
-    return collect_result(
-        poses, m.value, sequence.name, wall, (prep.intrinsics.width, prep.intrinsics.height)
-    )
+    return collect_result(poses, m.value, sequence.name, wall, (prep.intrinsics.width, prep.intrinsics.height))
 
 
-def collect_result(
-    poses: list[FramePose], method: str, name: str, wall_s: float, size: tuple[int, int]
-) -> VoResult:
+def collect_result(poses: list[FramePose], method: str, name: str, wall_s: float, size: tuple[int, int]) -> VoResult:
     """Stack per-frame poses into a :class:`VoResult`."""
     if not poses:
         raise EstimationError(f"no frames were processed for {name}; check the frame range")

@@ -10,13 +10,17 @@ from scipy.spatial.transform import Rotation
 
 from estimation.motion import (
     PNP_METHODS,
+    essential_from_prior,
     essential_metric,
     invert,
     make_T,
     pnp,
+    pose_from_essential,
     ransac_rigid,
+    refine_essential,
     rigidity_inliers,
     rotation_angle_rad,
+    sampson_px,
     umeyama,
 )
 from flightkit.errors import EstimationError
@@ -104,9 +108,7 @@ def test_ransac_rigid_rejects_half_outliers() -> None:
 
 def test_ransac_rigid_fails_cleanly_on_pure_noise() -> None:
     rng = np.random.default_rng(3)
-    m = ransac_rigid(
-        rng.uniform(-1, 1, (30, 3)), rng.uniform(-1, 1, (30, 3)), threshold_m=0.001, min_inliers=6
-    )
+    m = ransac_rigid(rng.uniform(-1, 1, (30, 3)), rng.uniform(-1, 1, (30, 3)), threshold_m=0.001, min_inliers=6)
     assert not m.ok
     np.testing.assert_array_equal(m.T_cur_ref, np.eye(4))
 
@@ -178,15 +180,136 @@ def test_essential_metric_rejects_half_outliers_and_bad_depths() -> None:
     assert_motion(m.T_cur_ref, T, 0.01, np.radians(0.3))
 
 
+def small_baseline() -> tuple[np.ndarray, np.ndarray]:
+    """2-4 m deep points and a 2 cm step (7-Scenes-like): 100-200 baselines away."""
+    rng = np.random.default_rng(5)
+    z = rng.uniform(2.0, 4.0, 200)
+    u = rng.uniform(20, 620, 200)
+    v = rng.uniform(20, 460, 200)
+    X = np.c_[(u - 320) / 500 * z, (v - 240) / 500 * z, z]
+    R = Rotation.from_euler("xyz", [0.4, -0.8, 0.3], degrees=True).as_matrix()
+    return X, make_T(R, [0.015, -0.006, 0.011])
+
+
+def test_essential_metric_depth_cheirality_keeps_far_points_recoverpose_drops() -> None:
+    X, T = small_baseline()
+    px0, px1 = project(np.eye(4), X), project(T, X)
+    # recoverPose triangulates and drops points beyond 50 baselines: every point here.
+    assert not essential_metric(px0, px1, K, X, threshold_px=0.5, cheirality="opencv").ok
+    m = essential_metric(px0, px1, K, X, threshold_px=0.5, cheirality="depth")
+    assert m.ok
+    assert m.n_inliers >= 195
+    assert_motion(m.T_cur_ref, T, 1e-5, 1e-6)
+
+
+def test_essential_metric_depth_cheirality_exact_and_rejects_half_outliers() -> None:
+    X = scene(150)
+    T = true_motion()
+    m = essential_metric(project(np.eye(4), X), project(T, X), K, X, threshold_px=0.5, cheirality="depth")
+    assert m.ok
+    assert_motion(m.T_cur_ref, T, 1e-4, 1e-5)
+    rng = np.random.default_rng(13)
+    X = scene(300)
+    px0 = project(np.eye(4), X) + rng.normal(0, 0.2, (300, 2))
+    px1 = project(T, X) + rng.normal(0, 0.2, (300, 2))
+    bad = rng.permutation(300)[:150]
+    px1[bad] = rng.uniform([0, 0], [640, 480], (150, 2))
+    m = essential_metric(px0, px1, K, X, threshold_px=1.0, cheirality="depth")
+    assert m.ok
+    assert m.inliers[bad].mean() < 0.05
+    assert_motion(m.T_cur_ref, T, 0.01, np.radians(0.3))
+    with pytest.raises(EstimationError, match="cheirality"):
+        essential_metric(px0, px1, K, X, cheirality="nearest")
+
+
+def test_pose_from_essential_picks_the_motion_the_depths_support() -> None:
+    X, T = small_baseline()
+    px1 = project(T, X)
+    t = T[:3, 3] / np.linalg.norm(T[:3, 3])
+    E = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ T[:3, :3]
+    for sign in (1.0, -1.0):  # E's sign (and so the decomposition's t sign) does not matter
+        m = pose_from_essential(sign * E, px1, X, K, np.ones(len(X), bool))
+        assert m is not None and m.n_inliers == len(X)
+        assert_motion(m.T_cur_ref, T, 1e-9, 1e-9)
+
+
+def rays(px: np.ndarray) -> np.ndarray:
+    return np.c_[(px - K[:2, 2]) / K[0, 0], np.ones(len(px))]
+
+
+def test_sampson_px_is_zero_on_the_epipolar_geometry_and_grows_with_the_offset() -> None:
+    X, T = small_baseline()
+    x0, x1 = rays(project(np.eye(4), X)), rays(project(T, X))
+    assert np.abs(sampson_px(T[:3, :3], T[:3, 3], x0, x1, 500.0)).max() < 1e-9
+    # Moving a match along the normal of its epipolar line by d pixels gives d / sqrt(2) or
+    # so (the Sampson distance shares the offset between both images): within 0.5-1.01 d.
+    E = np.cross(np.eye(3), T[:3, 3] / np.linalg.norm(T[:3, 3])).T @ T[:3, :3]
+    line = x0 @ E.T
+    n = line[:, :2] / np.linalg.norm(line[:, :2], axis=1, keepdims=True)
+    x1_off = x1.copy()
+    x1_off[:, :2] += 2.0 / 500.0 * n
+    d = sampson_px(T[:3, :3], T[:3, 3], x0, x1_off, 500.0)
+    assert np.all((d > 1.0) & (d < 2.02))
+
+
+def test_refine_essential_converges_to_the_exact_motion_from_a_wrong_start() -> None:
+    X, T = small_baseline()
+    x0, x1 = rays(project(np.eye(4), X)), rays(project(T, X))
+    dR = Rotation.from_euler("xyz", [0.3, -0.2, 0.25], degrees=True).as_matrix()
+    t_start = T[:3, 3] + np.array([0.004, 0.003, -0.002])  # ~20 degrees off in direction
+    R, t = refine_essential(dR @ T[:3, :3], t_start, x0, x1, 500.0, iterations=30)
+    assert abs(np.linalg.norm(t) - 1.0) < 1e-12
+    assert np.linalg.norm(t - T[:3, 3] / np.linalg.norm(T[:3, 3])) < 1e-6
+    assert rotation_angle_rad(R.T @ T[:3, :3]) < 1e-8
+    # The damping never lets the cost rise: one step from the start is no worse than it.
+    R1, t1 = refine_essential(dR @ T[:3, :3], t_start, x0, x1, 500.0, iterations=1)
+    cost = lambda R_, t_: float(np.sum(sampson_px(R_, t_, x0, x1, 500.0) ** 2))  # noqa: E731
+    assert cost(R1, t1) < cost(dR @ T[:3, :3], t_start)
+
+
+def test_essential_from_prior_exact_metric_motion_and_outliers_left_out() -> None:
+    X, T = small_baseline()
+    rng = np.random.default_rng(2)
+    px0, px1 = project(np.eye(4), X), project(T, X)
+    bad = rng.permutation(len(X))[:8]  # 4 %: tracks off the epipolar geometry by 5-20 px
+    px1[bad] += rng.uniform(5, 20, (8, 2)) * rng.choice([-1, 1], (8, 2))
+    guess = T.copy()
+    guess[:3, 3] *= 1.3  # constant velocity from a faster step
+    guess[:3, :3] = Rotation.from_euler("z", 0.1, degrees=True).as_matrix() @ T[:3, :3]
+    m = essential_from_prior(px0, px1, K, X, guess, iterations=30)
+    assert m is not None and m.ok
+    assert not m.inliers[bad].any()
+    assert m.n_inliers == len(X) - 8
+    assert_motion(m.T_cur_ref, T, 1e-6, 1e-7)
+    # The default single step is already within a fraction of a millimetre.
+    m1 = essential_from_prior(px0, px1, K, X, guess)
+    assert m1 is not None
+    assert_motion(m1.T_cur_ref, T, 5e-4, np.radians(0.05))
+
+
+def test_essential_from_prior_declines_when_the_prediction_does_not_explain_the_matches() -> None:
+    X, T = small_baseline()
+    px0, px1 = project(np.eye(4), X), project(T, X)
+    # A prediction moving the other way: the tracks are far from its epipolar lines.
+    wrong = make_T(Rotation.from_euler("y", 3.0, degrees=True).as_matrix(), [-0.02, 0.01, 0.0])
+    assert essential_from_prior(px0, px1, K, X, wrong) is None
+    # 30 % outliers: fewer than 90 % of the tracks pass the gate, RANSAC's job.
+    rng = np.random.default_rng(4)
+    bad = rng.permutation(len(X))[:60]
+    px_bad = px1.copy()
+    px_bad[bad] += rng.uniform(5, 20, (60, 2))
+    assert essential_from_prior(px0, px_bad, K, X, T) is None
+    # No translation in the prediction: no direction to start from.
+    assert essential_from_prior(px0, px1, K, X, np.eye(4)) is None
+
+
 def test_refine_pose_converges_to_the_exact_pose_with_and_without_disparity() -> None:
     from estimation.motion import refine_pose
 
     X = scene(60)
     T = true_motion()
     px = project(T, X)
-    start = make_T(
-        Rotation.from_euler("z", 1.5, degrees=True).as_matrix() @ T[:3, :3], T[:3, 3] + [0.03, -0.02, 0.05]
-    )
+    start = make_T(Rotation.from_euler("z", 1.5, degrees=True).as_matrix() @ T[:3, :3], T[:3, 3] + [0.03, -0.02, 0.05])
     assert_motion(refine_pose(start, X, px, K), T, 1e-7, 1e-8)
     Xc = X @ T[:3, :3].T + T[:3, 3]
     disp = 500.0 * 0.1 / Xc[:, 2]
@@ -255,6 +378,12 @@ def test_vo_options_reject_bad_values() -> None:
         VoOptions(pnp_kernel="epnp")
     with pytest.raises(EstimationError, match="kabsch_first_batch"):
         VoOptions(kabsch_first_batch=0)
+    with pytest.raises(EstimationError, match="essential_cheirality"):
+        VoOptions(essential_cheirality="triangulate")
+    with pytest.raises(EstimationError, match="essential_prior_iterations=0"):
+        VoOptions(essential_prior_iterations=0)
+    with pytest.raises(EstimationError, match="essential_prior_min_fraction=1.5"):
+        VoOptions(essential_prior_min_fraction=1.5)
 
 
 def test_lk_window_and_pyramid_follow_the_image_size_unless_set() -> None:
