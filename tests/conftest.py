@@ -10,6 +10,11 @@ from pathlib import Path
 
 import pytest
 
+# One BLAS thread, as the `flightkit` command sets for itself (flightkit/cli/main.py): set before
+# any test module imports numpy. Measured: the renderer's (76800 x 3) @ (3 x 3) product took 5-16
+# ms with OpenBLAS's two threads on this busy 2-core machine and 0.3 ms with one; same results.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO_ROOT.parent / "shared" / "data"
 
