@@ -168,6 +168,7 @@ def velocity_ransac(
     confidence: float = 0.999,
     rng: np.random.Generator | None = None,
     batch: int = 128,
+    robust_iters: int = 0,
 ) -> tuple[F64, npt.NDArray[np.bool_]]:
     """Camera twist from normalised point motion with a vectorised 3-point RANSAC.
 
@@ -178,6 +179,10 @@ def velocity_ransac(
         dt_s: time between the images.
         threshold: inlier threshold on the flow error in normalised units per second
             (pixels / f / dt).
+        robust_iters: after the least-squares refit on the inliers, this many reweighted
+            refits (Cauchy weights ``1 / (1 + (e / s)^2)`` with ``s = threshold / 2``): tracks
+            whose flow disagrees by a sizeable fraction of the threshold count less than those
+            that agree, instead of all inliers counting fully (0: off).
 
     Returns:
         ``(twist, inliers)``: twist (6,) = linear velocity (m/s) then angular velocity
@@ -220,11 +225,29 @@ def velocity_ransac(
         drawn += k
     mask = best_mask
     twist = np.zeros(6)
-    for _ in range(2):
+    # (With reweighted refits to follow, one least-squares refit starts them: they re-select.)
+    for _ in range(1 if robust_iters > 0 else 2):
         if np.count_nonzero(mask) < 3:
             return np.zeros(6), np.zeros(n, dtype=bool)
         twist = velocity_lstsq(L[mask], flow[mask])
         err = np.einsum("nij,j->ni", L, twist) - flow
+        mask = np.einsum("ni,ni->n", err, err) < thr2
+    if robust_iters > 0:
+        # Reweighted refits by the 6x6 normal equations, outliers at weight 0 (no indexing).
+        A = L.reshape(-1, 6)
+        b = flow.reshape(-1)
+        s2 = 0.25 * thr2
+        for _ in range(robust_iters):
+            e2 = np.einsum("ni,ni->n", err, err)
+            w = np.where(e2 < thr2, 1.0 / (1.0 + e2 / s2), 0.0)
+            if np.count_nonzero(w) < 3:
+                break
+            A_w = A * np.repeat(w, 2)[:, None]
+            try:
+                twist = np.linalg.solve(A_w.T @ A, A_w.T @ b)
+            except np.linalg.LinAlgError:
+                break
+            err = (A @ twist).reshape(n, 2) - flow
         mask = np.einsum("ni,ni->n", err, err) < thr2
     return twist, mask
 

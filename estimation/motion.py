@@ -48,6 +48,7 @@ __all__ = [
     "ransac_rigid",
     "refine_essential",
     "refine_pose",
+    "rigid_from_prior",
     "rigidity_inliers",
     "rotation_angle_rad",
     "sampson_px",
@@ -290,6 +291,78 @@ def ransac_rigid(
         mask = new_mask
     ok = int(np.count_nonzero(mask)) >= min_inliers
     return Motion(make_T(R_b, t_b), mask, ok)
+
+
+def rigid_from_prior(
+    src: npt.ArrayLike,
+    dst: npt.ArrayLike,
+    T_guess: npt.ArrayLike,
+    threshold_m: float,
+    gate_m: float,
+    min_fraction: float = 0.9,
+    min_inliers: int = 6,
+) -> Motion | None:
+    """Rigid ``dst ~ R @ src + t`` without RANSAC when a predicted motion explains the points.
+
+    The points within ``gate_m`` of ``T_guess`` (3D residual) are fitted by Kabsch, then, as
+    after :func:`ransac_rigid`, the inliers (within ``threshold_m``) are re-selected and
+    re-fitted up to three times. Accepted when at least ``min_fraction`` of the points (and
+    ``min_inliers``) pass the gate and are inliers of the final fit; else None (run RANSAC).
+
+    Args:
+        src, dst: (N, 3) corresponding points (reference frame, current frame), metres.
+        T_guess: (4, 4) predicted motion mapping src into dst (e.g. constant velocity).
+        threshold_m: inlier threshold of the fit; gate_m: of the prediction.
+
+    Returns:
+        :class:`Motion` (``ok`` True) or None. Returns immediately.
+    """
+    P = np.asarray(src, dtype=np.float64)
+    Q = np.asarray(dst, dtype=np.float64)
+    T = np.asarray(T_guess, dtype=np.float64)
+    n = len(P)
+    if P.shape != Q.shape or (n and P.shape[1] != 3) or T.shape != (4, 4):
+        raise EstimationError(
+            f"rigid_from_prior needs two (N, 3) arrays and a 4x4 guess, got {P.shape}, {Q.shape}, {T.shape}"
+        )
+    need = max(3, min_inliers, min_fraction * n)
+    if n < need:
+        return None
+    r = P @ T[:3, :3].T + T[:3, 3] - Q
+    mask = np.einsum("ni,ni->n", r, r) < gate_m * gate_m
+    thr2 = threshold_m * threshold_m
+    for _ in range(3):
+        if np.count_nonzero(mask) < need:
+            return None
+        R_b, t_b = _kabsch(P[mask], Q[mask])
+        r = P @ R_b.T + t_b - Q
+        new_mask = np.einsum("ni,ni->n", r, r) < thr2
+        if np.array_equal(new_mask, mask):
+            break
+        mask = new_mask
+    if np.count_nonzero(mask) < need:
+        return None
+    return Motion(make_T(R_b, t_b), mask, True)
+
+
+def _kabsch(P: F64, Q: F64) -> tuple[F64, F64]:
+    """:func:`umeyama` without scale, bit for bit, minus its checks and generic calls (~2x
+    cheaper on 200 points): the same centring, SVD and products; the reflection test by the
+    sign of a spelled-out 3x3 determinant (the sign of +-1 cannot differ)."""
+    mp, mq = P.mean(axis=0), Q.mean(axis=0)
+    H = (P - mp).T @ (Q - mq) / len(P)
+    U, _, Vt = np.linalg.svd(H)
+    V = Vt.T.copy()  # the layout of umeyama's ``Vt.T * D``, so the products round the same
+    M = V @ U.T
+    det = (
+        M[0, 0] * (M[1, 1] * M[2, 2] - M[1, 2] * M[2, 1])
+        - M[0, 1] * (M[1, 0] * M[2, 2] - M[1, 2] * M[2, 0])
+        + M[0, 2] * (M[1, 0] * M[2, 1] - M[1, 1] * M[2, 0])
+    )
+    if det < 0:
+        V[:, 2] = -V[:, 2]
+        M = V @ U.T
+    return M, mq - M @ mp
 
 
 def rigidity_inliers(P: npt.ArrayLike, Q: npt.ArrayLike, tol_m: float = 0.05, rel_tol: float = 0.02) -> Mask:
