@@ -278,19 +278,28 @@ def ransac_rigid(
         drawn += k
     if best_count < 3:
         return _failed(n)
-    mask = best_mask
-    R_b, t_b = np.eye(3), np.zeros(3)
+    fit = _refit_rigid(P, Q, best_mask, thr2, 3)
+    if fit is None:
+        return _failed(n)
+    R_b, t_b, mask = fit
+    ok = int(np.count_nonzero(mask)) >= min_inliers
+    return Motion(make_T(R_b, t_b), mask, ok)
+
+
+def _refit_rigid(P: F64, Q: F64, mask: Mask, thr2: float, min_count: float) -> tuple[F64, F64, Mask] | None:
+    """Kabsch on the inliers, then the points within the threshold (squared, ``thr2``) as the new
+    inliers, up to three times or until they stop changing; None when fewer than ``min_count``
+    are left to fit. Shared by :func:`ransac_rigid` and :func:`rigid_from_prior`."""
     for _ in range(3):
-        if np.count_nonzero(mask) < 3:
-            return _failed(n)
-        R_b, t_b, _ = umeyama(P[mask], Q[mask])
+        if np.count_nonzero(mask) < min_count:
+            return None
+        R_b, t_b = _kabsch(P[mask], Q[mask])
         r = P @ R_b.T + t_b - Q
         new_mask = np.einsum("ni,ni->n", r, r) < thr2
         if np.array_equal(new_mask, mask):
             break
         mask = new_mask
-    ok = int(np.count_nonzero(mask)) >= min_inliers
-    return Motion(make_T(R_b, t_b), mask, ok)
+    return R_b, t_b, mask
 
 
 def rigid_from_prior(
@@ -329,19 +338,10 @@ def rigid_from_prior(
     if n < need:
         return None
     r = P @ T[:3, :3].T + T[:3, 3] - Q
-    mask = np.einsum("ni,ni->n", r, r) < gate_m * gate_m
-    thr2 = threshold_m * threshold_m
-    for _ in range(3):
-        if np.count_nonzero(mask) < need:
-            return None
-        R_b, t_b = _kabsch(P[mask], Q[mask])
-        r = P @ R_b.T + t_b - Q
-        new_mask = np.einsum("ni,ni->n", r, r) < thr2
-        if np.array_equal(new_mask, mask):
-            break
-        mask = new_mask
-    if np.count_nonzero(mask) < need:
+    fit = _refit_rigid(P, Q, np.einsum("ni,ni->n", r, r) < gate_m * gate_m, threshold_m * threshold_m, need)
+    if fit is None or np.count_nonzero(fit[2]) < need:
         return None
+    R_b, t_b, mask = fit
     return Motion(make_T(R_b, t_b), mask, True)
 
 
