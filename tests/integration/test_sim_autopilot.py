@@ -182,11 +182,15 @@ def _event_s(lab: SimLab, kind: str, detail: str = "", after_s: float = -math.in
 
     Timing checks use these stamps, taken by the simulator as it acts, rather than the time the
     test's client happened to receive the consequence (at 10x, 40 ms of wall time between the
-    datagram and this thread's next turn are 0.4 s).
+    datagram and this thread's next turn are 0.4 s). Waits for the event: the simulator may send
+    its consequence (a STATUSTEXT, say) a moment before it logs the event.
     """
-    found = [e.stamp_s for e in lab.event_log if e.kind == kind and detail in e.detail and e.stamp_s > after_s]
-    assert found, [f"{e.stamp_s:.2f} {e.kind} {e.detail}" for e in lab.event_log]
-    return found[0]
+
+    def found() -> list[float]:
+        return [e.stamp_s for e in lab.event_log if e.kind == kind and detail in e.detail and e.stamp_s > after_s]
+
+    lab.wait_until(lambda: bool(found()), timeout_s=5.0, what=f"a {kind!r} event containing {detail!r}")
+    return found()[0]
 
 
 def _client(clients: list[Client], lab: SimLab, **kw: Any) -> Client:
