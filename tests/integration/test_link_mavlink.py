@@ -1,7 +1,8 @@
 """MavlinkLink over real sockets (and a real pty) against the simulated autopilot.
 
 Every test shares one ``SimClock(speed=10)`` between the simulator and the link, so a
-flight of ~30 simulated seconds takes ~3 s. Ports are chosen by the OS (port 0).
+flight of ~30 simulated seconds takes ~3 s; stall-limited, as both run in this process
+(docs/sim.md "Time"). Ports are chosen by the OS (port 0).
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from dataclasses import replace
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
-from flightkit.clock import SimClock
+from flightkit.clock import ONE_PROCESS_WALL_STEP_S, SimClock
 from flightkit.config import Autopilot, LinkConfig
 from flightkit.errors import CommandRejected, EndpointError, LinkError, LinkTimeout
 from flightkit.link import open_link
@@ -34,6 +35,11 @@ pytestmark = [pytest.mark.sitl, pytest.mark.timeout(120)]
 
 SPEED = 10.0
 KEY = bytes(range(32))
+
+
+def lab_clock() -> SimClock:
+    """The clock a simulator and a link in this process share (stall-limited: docs/sim.md "Time")."""
+    return SimClock(SPEED, max_wall_step_s=ONE_PROCESS_WALL_STEP_S)
 
 
 def asynctest(fn: Callable[..., Awaitable[None]]) -> Callable[..., None]:
@@ -87,7 +93,7 @@ async def hold(link: MavlinkLink, seconds: float, vel: tuple[float, float, float
 
 @asynctest
 async def test_px4_flight_arm_refused_then_takeoff_hold_land() -> None:
-    clock = SimClock(SPEED)
+    clock = lab_clock()
     with sim_autopilot(Autopilot.PX4, clock, ready_after_s=3.0, params={"MIS_TAKEOFF_ALT": 1.5}) as sim:
         async with connected(sim, Autopilot.PX4, clock, source_component=190) as link:
             assert isinstance(link, VehicleLink)
@@ -127,7 +133,7 @@ async def test_px4_flight_arm_refused_then_takeoff_hold_land() -> None:
 
 @asynctest
 async def test_ardupilot_flight_guided_refused_then_takeoff_hold_land() -> None:
-    clock = SimClock(SPEED)
+    clock = lab_clock()
     with sim_autopilot(Autopilot.ARDUPILOT, clock, ready_after_s=3.0) as sim:
         async with connected(sim, Autopilot.ARDUPILOT, clock) as link:
             assert link.info.autopilot is Autopilot.ARDUPILOT
@@ -152,7 +158,7 @@ async def test_ardupilot_flight_guided_refused_then_takeoff_hold_land() -> None:
 
 @asynctest
 async def test_velocity_frames_move_the_vehicle_the_right_way() -> None:
-    clock = SimClock(SPEED)
+    clock = lab_clock()
     with sim_autopilot(Autopilot.ARDUPILOT, clock, ready_after_s=0.0) as sim:
         async with connected(sim, Autopilot.ARDUPILOT, clock) as link:
             await link.set_mode(FlightMode.GUIDED)
@@ -182,7 +188,7 @@ async def test_velocity_frames_move_the_vehicle_the_right_way() -> None:
 
 @asynctest
 async def test_px4_offboard_loss_explicit_stop_then_failsafe() -> None:
-    clock = SimClock(SPEED)
+    clock = lab_clock()
     with sim_autopilot(Autopilot.PX4, clock, ready_after_s=0.0, params={"MIS_TAKEOFF_ALT": 1.5}) as sim:
         async with connected(sim, Autopilot.PX4, clock, setpoint_timeout_s=0.5) as link:
             await link.arm()
@@ -206,9 +212,7 @@ async def test_px4_offboard_loss_explicit_stop_then_failsafe() -> None:
             # The stream ends (as when the program exits): PX4 leaves OFFBOARD after COM_OF_LOSS_T.
             await link.stop_setpoint_stream()
             t0 = clock.monotonic_s()
-            tel = await link.wait_for(
-                lambda t: t.mode is not FlightMode.OFFBOARD, 3.0, "PX4 leaving OFFBOARD"
-            )
+            tel = await link.wait_for(lambda t: t.mode is not FlightMode.OFFBOARD, 3.0, "PX4 leaving OFFBOARD")
             assert 0.8 < clock.monotonic_s() - t0 < 2.0
             assert tel.mode is FlightMode.POSCTL  # COM_OBL_RC_ACT = 0
             assert tel.armed
@@ -216,7 +220,7 @@ async def test_px4_offboard_loss_explicit_stop_then_failsafe() -> None:
 
 @asynctest
 async def test_ardupilot_silence_brakes_and_stays_guided() -> None:
-    clock = SimClock(SPEED)
+    clock = lab_clock()
     with sim_autopilot(Autopilot.ARDUPILOT, clock, ready_after_s=0.0) as sim:
         async with connected(sim, Autopilot.ARDUPILOT, clock, setpoint_timeout_s=0.5) as link:
             await link.set_mode(FlightMode.GUIDED)
@@ -234,7 +238,7 @@ async def test_ardupilot_silence_brakes_and_stays_guided() -> None:
 
 @asynctest
 async def test_px4_offboard_needs_a_stream() -> None:
-    clock = SimClock(SPEED)
+    clock = lab_clock()
     with sim_autopilot(Autopilot.PX4, clock, ready_after_s=0.0) as sim:
         async with connected(sim, Autopilot.PX4, clock) as link:
             with pytest.raises(LinkError, match="start_setpoint_stream"):
@@ -252,7 +256,7 @@ async def test_px4_offboard_needs_a_stream() -> None:
 
 @asynctest
 async def test_lost_commands_are_retried_and_a_dead_link_times_out() -> None:
-    clock = SimClock(SPEED)
+    clock = lab_clock()
     with sim_autopilot(Autopilot.ARDUPILOT, clock, ready_after_s=0.0) as sim:
         async with connected(sim, Autopilot.ARDUPILOT, clock, command_timeout_s=3.0) as link:
             sim.kill_link(1.5)  # the first attempts vanish; a retry gets through
@@ -261,9 +265,7 @@ async def test_lost_commands_are_retried_and_a_dead_link_times_out() -> None:
             await link.disarm()
             sim.kill_link(10.0)
             t0 = clock.monotonic_s()
-            with pytest.raises(
-                LinkTimeout, match=r"no COMMAND_ACK for MAV_CMD_COMPONENT_ARM_DISARM after 3 attempts"
-            ):
+            with pytest.raises(LinkTimeout, match=r"no COMMAND_ACK for MAV_CMD_COMPONENT_ARM_DISARM after 3 attempts"):
                 await link.arm()
             assert 2.9 < clock.monotonic_s() - t0 < 4.0
             assert not sim.armed
@@ -271,13 +273,11 @@ async def test_lost_commands_are_retried_and_a_dead_link_times_out() -> None:
 
 @asynctest
 async def test_no_heartbeat_times_out_with_a_useful_message() -> None:
-    clock = SimClock(SPEED)
+    clock = lab_clock()
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as silent:
         silent.bind(("127.0.0.1", 0))  # a port where nobody answers
         port = silent.getsockname()[1]
-        link = MavlinkLink(
-            link_config(f"udpout:127.0.0.1:{port}", heartbeat_timeout_s=2.0), Autopilot.PX4, clock
-        )
+        link = MavlinkLink(link_config(f"udpout:127.0.0.1:{port}", heartbeat_timeout_s=2.0), Autopilot.PX4, clock)
         with pytest.raises(LinkTimeout) as info:
             await link.connect()
     assert str(info.value) == (
@@ -296,16 +296,14 @@ async def test_port_in_use(scheme: str) -> None:
         if kind == socket.SOCK_STREAM:
             taken.listen(1)
         port = taken.getsockname()[1]
-        link = MavlinkLink(link_config(f"{scheme}:127.0.0.1:{port}"), Autopilot.PX4, SimClock(SPEED))
-        with pytest.raises(
-            EndpointError, match=f"port {port} of {scheme}:127.0.0.1:{port} is already in use"
-        ):
+        link = MavlinkLink(link_config(f"{scheme}:127.0.0.1:{port}"), Autopilot.PX4, lab_clock())
+        with pytest.raises(EndpointError, match=f"port {port} of {scheme}:127.0.0.1:{port} is already in use"):
             await link.connect()
 
 
 @asynctest
 async def test_signing() -> None:
-    clock = SimClock(SPEED)
+    clock = lab_clock()
     with sim_autopilot(Autopilot.ARDUPILOT, clock, ready_after_s=0.0, signing_key=KEY) as sim:
         # Right key: everything works.
         async with connected(sim, Autopilot.ARDUPILOT, clock, signing_key_hex=KEY.hex()) as link:
@@ -355,7 +353,7 @@ async def test_serial_link_over_a_pty() -> None:
     thread = threading.Thread(target=autopilot, daemon=True)
     thread.start()
     try:
-        link = MavlinkLink(link_config(f"serial:{path}:921600"), Autopilot.PX4, SimClock(SPEED))
+        link = MavlinkLink(link_config(f"serial:{path}:921600"), Autopilot.PX4, lab_clock())
         async with link:
             tel = await link.wait_for(lambda t: t.mode is FlightMode.OFFBOARD, 2.0, "OFFBOARD heartbeat")
             assert tel.armed
@@ -375,7 +373,7 @@ async def test_external_pose_and_ekf_origin_reach_the_autopilot() -> None:
     from flightkit.frames import Transform
     from flightkit.link.base import ExternalPose, ExternalPoseKind
 
-    clock = SimClock(SPEED)
+    clock = lab_clock()
     events: list[tuple[str, str]] = []
     opts = AutopilotOptions(url="udpin:127.0.0.1:0", ready_after_s=0.0, params={"EKF2_EV_CTRL": 15})
     sim = SimAutopilot(
@@ -390,9 +388,7 @@ async def test_external_pose_and_ekf_origin_reach_the_autopilot() -> None:
                 kind = ExternalPoseKind.ODOMETRY if i % 2 else ExternalPoseKind.VISION_POSITION_ESTIMATE
                 await link.send_vision_pose(ExternalPose(clock.time_ns(), T), kind)
                 await clock.sleep(0.025)
-            await link.wait_for(
-                lambda t: "EKF2 starting vision fusion" in link.statustext, 3.0, "vision fusion"
-            )
+            await link.wait_for(lambda t: "EKF2 starting vision fusion" in link.statustext, 3.0, "vision fusion")
     assert ("vision", "fusing") in events
 
 
@@ -400,7 +396,7 @@ async def test_external_pose_and_ekf_origin_reach_the_autopilot() -> None:
 async def test_open_link_and_cli_status(capsys: pytest.CaptureFixture[str]) -> None:
     from flightkit.cli.main import main
 
-    clock = SimClock(SPEED)
+    clock = lab_clock()
     with sim_autopilot(Autopilot.ARDUPILOT, clock, ready_after_s=0.0) as sim:
         link = open_link(link_config(sim.client_url), Autopilot.ARDUPILOT, clock)
         assert isinstance(link, MavlinkLink)
