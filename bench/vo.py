@@ -6,10 +6,16 @@ and for the synthetic sequences of the three lab patterns (``sim_circle``, ``sim
 ``sim_lawnmower``: the simulated camera flown along them with exact ground truth, rendered
 natively at each size before timing, see ``bench/_synthetic.py``), at 320x240 and 640x480, prints:
 
-* frames/s of processing (images already decoded and resized; best of ``--repeat`` runs),
+* frames/s of processing (images already decoded and resized; best of ``--rounds`` runs),
   from wall time ("fps") and from the thread's CPU time ("cpu fps": what one dedicated
   core does; on a shared machine the wall figure includes time the core spent on other
   processes), and the mean per-stage wall milliseconds (track, motion, keyframe, ba);
+* the speed against the baseline as the median of paired ratios: each of ``--rounds`` rounds
+  runs baseline-pnp once and then every method once, on the same frames, and each method's
+  frames per CPU second is divided by the baseline's of the same round. On this shared 2-core
+  machine one run's speed moves by +-25 % with the load from minute to minute; a ratio of two
+  runs made seconds apart moves far less, and the median of several is the figure to quote
+  (the spread, min-max, is printed beside it);
 * accuracy against ground truth: ATE (SE(3)-aligned RMSE; none for 2-frame pairs), RPE
   (delta 1 frame, RMSE), the lab's relative (per step) and absolute (accumulated) errors
   (mean translation and rotation);
@@ -28,7 +34,7 @@ same frames held in memory). ``--preload`` decodes and resizes every frame befor
 as the synthetic sequences are rendered before them, for the figure of the processing alone;
 the trajectories are the same bit for bit.
 
-Run: .venv/bin/python bench/vo.py [--sizes 320x240,640x480] [--repeat 2] [--no-baseline]
+Run: .venv/bin/python bench/vo.py [--sizes 320x240,640x480] [--rounds 3] [--no-baseline]
      [--ba 4] [--only kitti06,sim_circle] [--no-synthetic] [--json out.json] [--unsuited]
      [--preload]
 """
@@ -137,14 +143,14 @@ def errors(res: VoResult, seq: object) -> dict[str, float]:
     return out
 
 
-def best_of(fn, repeat: int) -> VoResult:  # type: ignore[no-untyped-def]
-    best = None
-    for _ in range(repeat):
-        res = fn()
-        if best is None or res.fps_cpu > best.fps_cpu:
-            best = res
-    assert best is not None
-    return best
+def best(results: list[VoResult]) -> VoResult:
+    """The run with the most frames per CPU second (the trajectories of all runs are the same)."""
+    return max(results, key=lambda r: r.fps_cpu)
+
+
+def paired(ours: list[VoResult], base: list[VoResult]) -> list[float]:
+    """Speed ratios to the baseline, round by round (each round ran both on the same frames)."""
+    return [o.fps_cpu / b.fps_cpu for o, b in zip(ours, base, strict=True)]
 
 
 def stage_line(res: VoResult) -> str:
@@ -155,16 +161,19 @@ def stage_line(res: VoResult) -> str:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sizes", default="320x240,640x480")
-    ap.add_argument("--repeat", type=int, default=2)
+    ap.add_argument(
+        "--rounds",
+        type=int,
+        default=3,
+        help="rounds of (baseline-pnp, then every method) per sequence and size; speed = median paired ratio",
+    )
     ap.add_argument("--no-baseline", action="store_true")
     ap.add_argument("--ba", type=int, default=0, help="also run with local BA over N keyframes")
     ap.add_argument("--only", help="comma-separated sequence keys")
     ap.add_argument("--no-synthetic", action="store_true", help="skip the synthetic lab-pattern sequences")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--unsuited", action="store_true", help="also run the methods marked unsuited (UNSUITED)")
-    ap.add_argument(
-        "--preload", action="store_true", help="decode and resize the real sequences before the timed runs"
-    )
+    ap.add_argument("--preload", action="store_true", help="decode and resize the real sequences before the timed runs")
     args = ap.parse_args()
 
     cv2.setNumThreads(1)
@@ -201,7 +210,9 @@ def main() -> int:
             if args.preload and key not in SYNTHETIC:
                 seq = Preloaded(seq if not isinstance(seq, Preloaded) else seq._seq, size)
                 print(f"   ({key} at {size[0]}x{size[1]}: {len(seq)} frames decoded and resized before timing)")
-            runs: list[tuple[str, VoResult, VoOptions | None]] = []
+            # What runs: (label, method, options); "flow@stereo" is flow with per-point stereo
+            # depth instead of the altitude.
+            plan: list[tuple[str, str, VoOptions]] = []
             for label in methods:
                 if (key, label) in UNSUITED and not args.unsuited:
                     print(f"{key:13} {size[0]}x{size[1]:<4} {label:16} not run: {UNSUITED[(key, label)]}")
@@ -214,52 +225,35 @@ def main() -> int:
                         }
                     )
                     continue
-                # "flow@stereo": the flow method with per-point stereo depth instead of the altitude.
                 m, _, variant = label.partition("@")
-                opts = VoOptions(flow_depth="stereo") if variant == "stereo" else VoOptions()
-                runs.append(
-                    (
-                        label,
-                        best_of(
-                            lambda m=m, o=opts, s=seq, z=size: run_vo(
-                                s, m, options=o, size=z, init_from_groundtruth=True
-                            ),
-                            args.repeat,
-                        ),
-                        opts,
-                    )
-                )
+                plan.append((label, m, VoOptions(flow_depth="stereo") if variant == "stereo" else VoOptions()))
+            # Rounds: baseline-pnp, then every method, on the same frames; speeds are compared
+            # within a round (see the module docstring).
+            timed: dict[str, list[VoResult]] = {label: [] for label, _, _ in plan}
+            base_rounds: list[VoResult] = []
+            for _ in range(max(1, args.rounds)):
+                if not args.no_baseline:
+                    base_rounds.append(run_baseline(seq, "pnp", size=size, init_from_groundtruth=True))
+                for label, m, opts in plan:
+                    timed[label].append(run_vo(seq, m, options=opts, size=size, init_from_groundtruth=True))
+            runs: list[tuple[str, VoResult, list[float]]] = []
+            for label, m, opts in plan:
+                ratios = paired(timed[label], base_rounds) if base_rounds else []
+                runs.append((label, best(timed[label]), ratios))
                 if args.ba and Method(m) is not Method.FLOW:
                     o2 = replace(opts, ba_window=args.ba)
-                    runs.append(
-                        (
-                            f"{m}+ba{args.ba}",
-                            best_of(
-                                lambda m=m, o=o2, s=seq, z=size: run_vo(
-                                    s, m, options=o, size=z, init_from_groundtruth=True
-                                ),
-                                1,
-                            ),
-                            o2,
-                        )
-                    )
-            if not args.no_baseline:
+                    res_ba = run_vo(seq, m, options=o2, size=size, init_from_groundtruth=True)
+                    runs.append((f"{m}+ba{args.ba}", res_ba, []))
+            if base_rounds:
+                runs.append(("baseline-pnp", best(base_rounds), []))
                 # The synthetic sequences carry depth and stereo: the lab's pipeline runs on the
                 # depth images (its best input) and, to compare like with like for the stereo
-                # method, on the stereo pair too ("baseline-pnp@stereo").
-                modes = [("pnp", "auto"), ("essential", "auto")]
-                if key in SYNTHETIC:
-                    modes.append(("pnp", "stereo"))
+                # method, on the stereo pair too ("baseline-pnp@stereo"). Once each: no ratio uses them.
+                modes = [("essential", "auto")] + ([("pnp", "stereo")] if key in SYNTHETIC else [])
                 for mode, sensor in modes:
-                    runs.append(
-                        (
-                            f"baseline-{mode}" + ("@stereo" if sensor == "stereo" else ""),
-                            run_baseline(seq, mode, size=size, init_from_groundtruth=True, sensor=sensor),
-                            None,
-                        )
-                    )
-            base_fps = {n: r.fps_cpu for n, r, _ in runs if n.startswith("baseline")}
-            for name, res, _ in runs:
+                    res_b = run_baseline(seq, mode, size=size, init_from_groundtruth=True, sensor=sensor)
+                    runs.append((f"baseline-{mode}" + ("@stereo" if sensor == "stereo" else ""), res_b, []))
+            for name, res, ratios in runs:
                 err = errors(res, seq)
                 print(
                     f"{key:13} {size[0]}x{size[1]:<4} {name:16} {res.fps:7.1f} {res.fps_cpu:7.1f} "
@@ -278,13 +272,20 @@ def main() -> int:
                 }
                 row["stage_ms"] = {k: float(np.mean(v)) for k, v in res.stage_ms.items()}
                 row["quality_counts"] = np.bincount(res.quality, minlength=5).tolist()
-                if base_fps.get("baseline-pnp"):
-                    row["cpu_speedup_vs_baseline_pnp"] = res.fps_cpu / base_fps["baseline-pnp"]
+                if ratios:
+                    row["speedup_vs_baseline_pnp_paired"] = ratios
+                    row["speedup_vs_baseline_pnp_median"] = float(np.median(ratios))
                 rows.append(row)
-            if base_fps.get("baseline-pnp"):
-                ours = [(n, r.fps_cpu) for n, r, _ in runs if not n.startswith("baseline")]
-                ratio = ", ".join(f"{n} {f / base_fps['baseline-pnp']:.0f}x" for n, f in ours)
-                print(f"{'':13} speed vs baseline-pnp ({base_fps['baseline-pnp']:.1f} fps): {ratio}")
+            if base_rounds:
+                base_fps = ", ".join(f"{r.fps_cpu:.1f}" for r in base_rounds)
+                print(
+                    f"{'':13} speed vs baseline-pnp ({base_fps} cpu fps in {len(base_rounds)} rounds), "
+                    "median of the paired ratios (min-max):"
+                )
+                print(
+                    f"{'':13}   "
+                    + ", ".join(f"{n} {np.median(q):.1f}x ({min(q):.1f}-{max(q):.1f})" for n, _, q in runs if q)
+                )
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
         print(f"\nwrote {args.json}")
