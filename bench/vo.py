@@ -36,7 +36,7 @@ the trajectories are the same bit for bit.
 
 Run: .venv/bin/python bench/vo.py [--sizes 320x240,640x480] [--rounds 3] [--no-baseline]
      [--ba 4] [--only kitti06,sim_circle] [--no-synthetic] [--json out.json] [--unsuited]
-     [--preload]
+     [--preload] [--cpu N]
 """
 
 from __future__ import annotations
@@ -174,12 +174,13 @@ def main() -> int:
     ap.add_argument("--json", type=Path)
     ap.add_argument("--unsuited", action="store_true", help="also run the methods marked unsuited (UNSUITED)")
     ap.add_argument("--preload", action="store_true", help="decode and resize the real sequences before the timed runs")
+    ap.add_argument("--cpu", type=int, help="the CPU to pin the process to (default: the last one)")
     args = ap.parse_args()
 
     cv2.setNumThreads(1)
     if hasattr(os, "sched_setaffinity"):
         cpus = sorted(os.sched_getaffinity(0))
-        os.sched_setaffinity(0, {cpus[-1]})
+        os.sched_setaffinity(0, {cpus[-1] if args.cpu is None else args.cpu})
     sizes = [tuple(int(v) for v in s.split("x")) for s in args.sizes.split(",")]
     keys = args.only.split(",") if args.only else list(SEQUENCES) + ([] if args.no_synthetic else list(SYNTHETIC))
     rows: list[dict[str, object]] = []
