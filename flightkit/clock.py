@@ -32,6 +32,7 @@ __all__ = [
     "LockstepClock",
     "SimClock",
     "WallClock",
+    "sleep_until",
 ]
 
 #: The stall limit (``SimClock(max_wall_step_s=...)``) for a simulated lab whose clients share its
@@ -297,6 +298,13 @@ class LockstepClock:
             deadline = self._now_s + max(0.0, duration_s)
             self._cond.wait_for(lambda: self._now_s >= deadline)
 
+    def wait_until(self, deadline_s: float, timeout_wall_s: float) -> bool:
+        """Block until time reaches ``deadline_s`` (True) or ``timeout_wall_s`` of wall time
+        passed (False): a thread that must also watch something else (a stop event) waits
+        in such slices, as time moves only when another thread advances it."""
+        with self._cond:
+            return self._cond.wait_for(lambda: self._now_s >= deadline_s, timeout=timeout_wall_s)
+
     @property
     def pending_sleepers(self) -> int:
         """Coroutines currently sleeping on this clock."""
@@ -320,6 +328,30 @@ class LockstepClock:
 
     def __repr__(self) -> str:
         return f"LockstepClock(t={self._now_s:.6f}s)"
+
+
+#: A deadline counts as reached within this much (simulated seconds): the rounding of summed
+#: clock steps (a lock-step test advancing 0.01 s a thousand times) must not miss one.
+DUE_TOLERANCE_S = 1e-6
+
+
+def sleep_until(clock: Clock, deadline_s: float, stop: threading.Event, slice_wall_s: float = 0.05) -> bool:
+    """Sleep a thread on ``clock`` until its ``monotonic_s()`` reaches ``deadline_s``.
+
+    Returns True at the deadline, False as soon as ``stop`` is set: the wait goes in slices of
+    at most ``slice_wall_s`` of wall time, so a thread that is told to stop leaves within a
+    slice, on a wall, a simulated or a lock-step clock (where time moves only when a test
+    advances it and a plain ``sleep_blocking`` would wait for that).
+    """
+    while not stop.is_set():
+        left = deadline_s - clock.monotonic_s()
+        if left <= DUE_TOLERANCE_S:
+            return True
+        if isinstance(clock, LockstepClock):
+            clock.wait_until(deadline_s - DUE_TOLERANCE_S / 2, slice_wall_s)
+        else:
+            clock.sleep_blocking(min(left - DUE_TOLERANCE_S / 2, slice_wall_s * clock.speed))
+    return False
 
 
 def _resolve(fut: asyncio.Future[None]) -> None:

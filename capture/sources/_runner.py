@@ -9,20 +9,16 @@ pyrealsense2, libmotioncapture) live only on that thread (STYLE 6).
 from __future__ import annotations
 
 import logging
-import math
 import threading
 from types import TracebackType
 from typing import Self
 
-from flightkit.clock import Clock
+from flightkit.clock import Clock, sleep_until
 from flightkit.errors import CaptureError
 
 __all__ = ["SourceThread"]
 
 logger = logging.getLogger(__name__)
-
-_DUE_TOLERANCE_S = 1e-6
-
 
 class SourceThread:
     """One daemon thread publishing a source; ``with`` starts and stops it.
@@ -65,19 +61,8 @@ class SourceThread:
             self._cond.notify_all()
 
     def _sleep_until(self, deadline_s: float) -> bool:
-        """Sleep on the clock until ``deadline_s`` (clock seconds); False if stopped first.
-
-        Sleeps in short slices so :meth:`stop` is quick on a wall or simulated clock.
-        """
-        clock = self.clock
-        lockstep = not math.isfinite(clock.speed)
-        while not self._stop.is_set():
-            left = deadline_s - clock.monotonic_s()
-            if left <= _DUE_TOLERANCE_S:
-                return True
-            left -= _DUE_TOLERANCE_S / 2
-            clock.sleep_blocking(left if lockstep else min(left, 0.05 * clock.speed))
-        return False
+        """Sleep on the clock until ``deadline_s`` (clock seconds); False if stopped first."""
+        return sleep_until(self.clock, deadline_s, self._stop)
 
     def _pause(self, duration_s: float) -> bool:
         """Sleep ``duration_s`` of clock time; False if stopped first."""
@@ -155,7 +140,7 @@ class SourceThread:
         t, self._thread = self._thread, None
         if t is not None:
             # A blocking driver call may not return (a stalled device): the daemon is abandoned.
-            t.join(timeout=timeout_s if math.isfinite(self.clock.speed) else 0.2)
+            t.join(timeout=timeout_s)
         self._close_outputs()
 
     def __enter__(self) -> Self:

@@ -37,7 +37,7 @@ import zenoh
 from capture.config import CaptureConfig
 from capture.streams import CameraModel, CameraStream, TfPublisher, optical_frame_id
 from flightkit.bus.keys import Keys
-from flightkit.clock import Clock
+from flightkit.clock import Clock, sleep_until
 from flightkit.config import CameraConfig
 from flightkit.errors import CaptureError
 from flightkit.frames import Transform
@@ -46,8 +46,6 @@ from flightkit.sim.camera import PinholeModel, Scene, SimCamera
 __all__ = ["SimCameraPublisher", "SimCameraService", "TruthFn", "start_sim_camera"]
 
 logger = logging.getLogger(__name__)
-
-_DUE_TOLERANCE_S = 1e-6
 
 TruthFn = Callable[[], tuple[int, Transform]]
 """Returns ``(stamp_ns, T_world_body)``: the vehicle's true pose now (same as the mocap publisher's)."""
@@ -199,24 +197,11 @@ class SimCameraPublisher:
         self._stop.set()
         t, self._thread = self._thread, None
         if t is not None:
-            # Under a LockstepClock the thread may wait for time that never comes; it is a daemon
-            # and checks the stop flag before publishing again.
-            t.join(timeout=5.0 if math.isfinite(self._clock.speed) else 0.2)
+            t.join(timeout=5.0)  # its waits end within 50 ms of the stop flag (clock.sleep_until)
         for s in self._streams:
             s.close()
         if self._tf is not None:
             self._tf.close()
-
-    def _sleep_until(self, deadline_s: float) -> None:
-        clock = self._clock
-        lockstep = not math.isfinite(clock.speed)
-        while not self._stop.is_set():
-            left = deadline_s - clock.monotonic_s()
-            if left <= _DUE_TOLERANCE_S:  # due, within the rounding of summed clock steps
-                return
-            # Short slices so stop() is quick (a lock-step clock only moves when advanced).
-            left -= _DUE_TOLERANCE_S / 2
-            clock.sleep_blocking(left if lockstep else min(left, 0.05 * clock.speed))
 
     def _run(self) -> None:
         period = 1.0 / self.rate_hz
@@ -225,7 +210,7 @@ class SimCameraPublisher:
         n = 0  # index of the next due frame; due times are t0 + n * period (no drift from sums)
         try:
             while not self._stop.is_set():
-                self._sleep_until(t0 + n * period)
+                sleep_until(self._clock, t0 + n * period, self._stop)
                 if self._stop.is_set():
                     break
                 stamp_ns, T_world_body = self._truth()  # noqa: N806

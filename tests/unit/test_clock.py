@@ -11,6 +11,7 @@ from flightkit.clock import (
     LockstepClock,
     SimClock,
     WallClock,
+    sleep_until,
 )
 
 
@@ -80,6 +81,37 @@ def test_lockstep_blocking_sleep_from_thread() -> None:
     t.join()
     with pytest.raises(ValueError):
         clock.advance(-1.0)
+
+
+@pytest.mark.parametrize("make_clock", [LockstepClock, lambda: SimClock(speed=0.01)], ids=["lockstep", "sim"])
+def test_sleep_until_leaves_when_told_to_stop(make_clock) -> None:  # type: ignore[no-untyped-def]
+    # A lock-step clock that nobody advances (or a very slow simulated one) must not keep a
+    # thread that is told to stop: its join would otherwise wait for time that never comes.
+    clock = make_clock()
+    stop = threading.Event()
+    result: list[bool] = []
+    t = threading.Thread(target=lambda: result.append(sleep_until(clock, clock.monotonic_s() + 60.0, stop)))
+    t.start()
+    t.join(0.1)
+    assert t.is_alive()  # still waiting for its deadline
+    t0 = time.monotonic()
+    stop.set()
+    t.join(2.0)
+    assert not t.is_alive() and result == [False]
+    assert time.monotonic() - t0 < 0.5  # within a few 50 ms slices
+
+
+def test_sleep_until_returns_at_the_lockstep_deadline() -> None:
+    clock = LockstepClock()
+    stop = threading.Event()
+    result: list[bool] = []
+    t = threading.Thread(target=lambda: result.append(sleep_until(clock, 1.0, stop)))
+    t.start()
+    for _ in range(100):  # 100 steps of 0.01 s sum to 1 - 1e-16: within the due tolerance
+        clock.advance(0.01)
+    t.join(2.0)
+    assert result == [True]
+    assert sleep_until(clock, 0.5, stop)  # a deadline already passed returns at once
 
 
 class _FakeWall:
