@@ -1,8 +1,8 @@
 """MavsdkLink over real UDP against the simulated autopilot (and against nothing at all).
 
 MAVSDK keeps wall time inside (command retries, its 3 s connection timeout, the 20 Hz
-offboard re-send), so the simulator and the link share a ``SimClock`` at speed 2: a flight
-of ~16 simulated seconds takes ~8 s of wall time. Ports are chosen by the OS.
+offboard re-send), so the simulator and the link share a ``SimClock`` at speed 2 (stall-limited):
+a flight of ~16 simulated seconds takes ~8 s of wall time. Ports are chosen by the OS.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from flightkit.clock import SimClock
+from flightkit.clock import ONE_PROCESS_WALL_STEP_S, SimClock
 from flightkit.config import Autopilot, ConfigError, LinkBackend, LinkConfig
 from flightkit.errors import CommandRejected, EndpointError, LinkTimeout
 from flightkit.frames import Transform
@@ -63,7 +63,10 @@ async def flight(
     autopilot: Autopilot, link_kw: dict[str, object] | None = None, **lab_kw: object
 ) -> AsyncIterator[tuple[SimLab, MavsdkLink]]:
     """A simulated lab on a free port and a connected MAVSDK link to it."""
-    clock = SimClock(SPEED)
+    # Stall-limited like every one-process lab (docs/sim.md "Time"): a host stall slows simulated
+    # time down instead of letting it jump past the offboard-loss failsafe while MAVSDK's
+    # threads wait for the CPU.
+    clock = SimClock(SPEED, max_wall_step_s=ONE_PROCESS_WALL_STEP_S)
     kw: dict[str, object] = {"ready_after_s": 0.0, **lab_kw}
     lab = SimLab(autopilot=autopilot, url="udpin:127.0.0.1:0", clock=clock, **kw)  # type: ignore[arg-type]
     with lab:
