@@ -23,7 +23,8 @@ natively at each size before timing, see ``bench/_synthetic.py``), at 320x240 an
   KITTI car) are named with the reason instead of a meaningless number;
 * the lab's baseline (SIFT + brute force + solvePnP iterative / essential matrix, every
   frame, on the depth images where there are any; on the synthetic sequences also on the
-  stereo pair, ``baseline-pnp@stereo``) side by side, and the speed ratio.
+  stereo pair, ``baseline-pnp@stereo``, the like-for-like comparison for ``stereo``) side by
+  side, and the speed ratio to the baseline on the same sensor.
 
 The process is pinned to one CPU and OpenCV/BLAS to one thread.
 
@@ -228,32 +229,40 @@ def main() -> int:
                     continue
                 m, _, variant = label.partition("@")
                 plan.append((label, m, VoOptions(flow_depth="stereo") if variant == "stereo" else VoOptions()))
-            # Rounds: baseline-pnp, then every method, on the same frames; speeds are compared
-            # within a round (see the module docstring).
+
+            # Rounds: the baseline, then every method, on the same frames; speeds are compared
+            # within a round (see the module docstring). Each method is compared with the lab's
+            # pipeline on the same sensor: on the synthetic sequences, which carry both, the
+            # stereo methods with the baseline on the stereo pair ("baseline-pnp@stereo"), the
+            # others with the baseline on the depth images (its best input).
+            def base_for(label: str, key: str = key) -> str:
+                on_stereo = label == "stereo" or label.endswith("@stereo")
+                return "baseline-pnp@stereo" if key in SYNTHETIC and on_stereo else "baseline-pnp"
+
             timed: dict[str, list[VoResult]] = {label: [] for label, _, _ in plan}
-            base_rounds: list[VoResult] = []
+            bases = [] if args.no_baseline else sorted({base_for(label) for label, _, _ in plan} | {"baseline-pnp"})
+            base_rounds: dict[str, list[VoResult]] = {b: [] for b in bases}
             for _ in range(max(1, args.rounds)):
-                if not args.no_baseline:
-                    base_rounds.append(run_baseline(seq, "pnp", size=size, init_from_groundtruth=True))
+                for b in bases:
+                    sensor = "stereo" if b.endswith("@stereo") else "auto"
+                    base_rounds[b].append(
+                        run_baseline(seq, "pnp", size=size, init_from_groundtruth=True, sensor=sensor)
+                    )
                 for label, m, opts in plan:
                     timed[label].append(run_vo(seq, m, options=opts, size=size, init_from_groundtruth=True))
             runs: list[tuple[str, VoResult, list[float]]] = []
             for label, m, opts in plan:
-                ratios = paired(timed[label], base_rounds) if base_rounds else []
+                ratios = paired(timed[label], base_rounds[base_for(label)]) if bases else []
                 runs.append((label, best(timed[label]), ratios))
                 if args.ba and Method(m) is not Method.FLOW:
                     o2 = replace(opts, ba_window=args.ba)
                     res_ba = run_vo(seq, m, options=o2, size=size, init_from_groundtruth=True)
                     runs.append((f"{m}+ba{args.ba}", res_ba, []))
-            if base_rounds:
-                runs.append(("baseline-pnp", best(base_rounds), []))
-                # The synthetic sequences carry depth and stereo: the lab's pipeline runs on the
-                # depth images (its best input) and, to compare like with like for the stereo
-                # method, on the stereo pair too ("baseline-pnp@stereo"). Once each: no ratio uses them.
-                modes = [("essential", "auto")] + ([("pnp", "stereo")] if key in SYNTHETIC else [])
-                for mode, sensor in modes:
-                    res_b = run_baseline(seq, mode, size=size, init_from_groundtruth=True, sensor=sensor)
-                    runs.append((f"baseline-{mode}" + ("@stereo" if sensor == "stereo" else ""), res_b, []))
+            if bases:
+                runs += [(b, best(base_rounds[b]), []) for b in bases]
+                # The essential-matrix baseline once: no ratio uses it.
+                res_e = run_baseline(seq, "essential", size=size, init_from_groundtruth=True)
+                runs.append(("baseline-essential", res_e, []))
             for name, res, ratios in runs:
                 err = errors(res, seq)
                 print(
@@ -274,18 +283,21 @@ def main() -> int:
                 row["stage_ms"] = {k: float(np.mean(v)) for k, v in res.stage_ms.items()}
                 row["quality_counts"] = np.bincount(res.quality, minlength=5).tolist()
                 if ratios:
-                    row["speedup_vs_baseline_pnp_paired"] = ratios
-                    row["speedup_vs_baseline_pnp_median"] = float(np.median(ratios))
+                    row["speedup_baseline"] = base_for(name)
+                    row["speedup_paired"] = ratios
+                    row["speedup_median"] = float(np.median(ratios))
                 rows.append(row)
-            if base_rounds:
-                base_fps = ", ".join(f"{r.fps_cpu:.1f}" for r in base_rounds)
+            for b in bases:
+                ours = [(n, q) for n, _, q in runs if q and base_for(n) == b]
+                if not ours:
+                    continue
+                base_fps = ", ".join(f"{r.fps_cpu:.1f}" for r in base_rounds[b])
                 print(
-                    f"{'':13} speed vs baseline-pnp ({base_fps} cpu fps in {len(base_rounds)} rounds), "
+                    f"{'':13} speed vs {b} ({base_fps} cpu fps in {len(base_rounds[b])} rounds), "
                     "median of the paired ratios (min-max):"
                 )
                 print(
-                    f"{'':13}   "
-                    + ", ".join(f"{n} {np.median(q):.1f}x ({min(q):.1f}-{max(q):.1f})" for n, _, q in runs if q)
+                    f"{'':13}   " + ", ".join(f"{n} {np.median(q):.1f}x ({min(q):.1f}-{max(q):.1f})" for n, q in ours)
                 )
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
