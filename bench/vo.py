@@ -91,7 +91,7 @@ UNSUITED: dict[tuple[str, str], str] = {
     ),
 }
 """(sequence, method) pairs not run by default: the method's model does not hold there, so its
-number would mean nothing (``--unsuited`` runs them anyway; docs/estimation.md, "When to use which")."""
+number would mean nothing (``--unsuited`` runs them anyway; docs/estimation.md, "Methods and when to use them")."""
 
 
 class Preloaded:
