@@ -89,12 +89,11 @@ def register(subparsers: Any) -> None:
     )
     rn.add_argument(
         "dataset",
-        help="dataset folder (EuRoC, KITTI, TUM, 7-Scenes), .mcap recording, or sim:circle|rectangle|lawnmower",
+        help="dataset folder (EuRoC, KITTI, TUM, 7-Scenes), .mcap recording, video with a calibration file, "
+        "or sim:circle|rectangle|lawnmower",
     )
     rn.add_argument("--method", default="stereo", help="rgbd-pnp, rgbd-essential, rgbd-kabsch, stereo, flow")
-    rn.add_argument(
-        "--out", type=Path, help="write the estimate here (TUM); default <dataset name>_<method>.txt"
-    )
+    rn.add_argument("-o", "--out", type=Path, help="write the estimate here (TUM); default <dataset name>_<method>.txt")
     rn.add_argument("--size", help="process at WIDTHxHEIGHT (e.g. 640x480)")
     rn.add_argument("--start", type=int, default=0, help="first frame")
     rn.add_argument("--stop", type=int, help="stop before this frame")
@@ -366,9 +365,7 @@ def run_vo_command(args: argparse.Namespace) -> int:
     except ImportError as exc:
         raise EstimationError(f"the VO pipeline (estimation.pipeline) is not available: {exc}") from exc
     if not hasattr(pipeline, "run_vo"):
-        raise EstimationError(
-            "estimation.pipeline has no run_vo(); the VO pipeline is not installed in this build"
-        )
+        raise EstimationError("estimation.pipeline has no run_vo(); the VO pipeline is not installed in this build")
     from rich.progress import Progress
 
     seq = open_dataset(args.dataset)

@@ -133,7 +133,7 @@ def test_cli_runs_a_synthetic_sequence_and_reports_frames_per_second(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     out = tmp_path / "est.txt"
-    code = main(["vo", "run", "sim:circle?duration_s=2&rate_hz=10", "--method", "flow", "--out", str(out), "--eval"])
+    code = main(["vo", "run", "sim:circle?duration_s=2&rate_hz=10", "--method", "flow", "-o", str(out), "--eval"])
     assert code == 0
     text = capsys.readouterr().out
     last = text.strip().splitlines()[-1]
