@@ -33,6 +33,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
+from estimation import _kernels
 from estimation.features import DescriptorExtractor
 from estimation.matching import match_stereo_rows
 from estimation.motion import make_T
@@ -201,26 +202,16 @@ def velocity_ransac(
     thr2 = threshold * threshold
     best_count, best_mask = -1, np.zeros(n, dtype=bool)
     needed, drawn = max_iters, 0
-    A_all = L.reshape(n, 2, 6)
-    eye = 1e-9 * np.eye(6)
+    A_all = np.ascontiguousarray(L.reshape(n, 2, 6))
+    flow_c = np.ascontiguousarray(flow)
     while drawn < needed:
         k = min(batch, needed - drawn)
-        idx = (
-            np.stack([rng.choice(n, 3, replace=False) for _ in range(k)])
-            if n < 8
-            else rng.integers(0, n, (k, 3))
-        )
-        A = A_all[idx].reshape(k, 6, 6)
-        b = flow[idx].reshape(k, 6)
-        At = np.swapaxes(A, 1, 2)
-        sol = np.linalg.solve(At @ A + eye, (At @ b[:, :, None]))[:, :, 0]  # (k, 6)
-        pred = np.einsum("nij,kj->kni", A_all, sol)  # (k, n, 2)
-        err = pred - flow[None]
-        inl = np.einsum("kni,kni->kn", err, err) < thr2
-        counts = inl.sum(axis=1)
-        j = int(np.argmax(counts))
-        if counts[j] > best_count:
-            best_count, best_mask = int(counts[j]), inl[j]
+        idx = np.stack([rng.choice(n, 3, replace=False) for _ in range(k)]) if n < 8 else rng.integers(0, n, (k, 3))
+        # Each hypothesis solved (normal equations, 1e-9 ridge) and scored against every
+        # track in one compiled loop; the batch's first best.
+        _, count, inl = _kernels.flow_hypotheses(A_all, flow_c, idx.astype(np.int64), 1e-9, thr2)
+        if count > best_count:
+            best_count, best_mask = int(count), inl
             needed = ransac_iterations(best_count / n, 3, confidence, max_iters)
         drawn += k
     mask = best_mask
@@ -290,9 +281,7 @@ def stereo_altitude_m(
     dist = (
         np.count_nonzero(np.unpackbits(fl.descriptors[il] ^ fr.descriptors[ir], axis=1), axis=1)
         if fl.norm == cv2.NORM_HAMMING
-        else np.linalg.norm(
-            fl.descriptors[il].astype(np.float32) - fr.descriptors[ir].astype(np.float32), axis=1
-        )
+        else np.linalg.norm(fl.descriptors[il].astype(np.float32) - fr.descriptors[ir].astype(np.float32), axis=1)
     )
     keep = np.argsort(dist, kind="stable")[: max(5, int(len(il) * best_fraction))]
     d = float(np.median(disp[keep]))

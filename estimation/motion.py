@@ -32,6 +32,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from estimation import _kernels
 from flightkit.errors import EstimationError
 
 __all__ = [
@@ -542,10 +543,10 @@ def refine_pose(
         iterations: Gauss-Newton steps (stops early on convergence).
 
     Returns:
-        The refined (4, 4) pose. Returns immediately (vectorised numpy).
+        The refined (4, 4) pose. Returns immediately (rows by a compiled loop, estimation._kernels).
     """
-    X = np.asarray(points_ref, dtype=np.float64).reshape(-1, 3)
-    uv = np.asarray(pts_px, dtype=np.float64).reshape(-1, 2)
+    X = np.ascontiguousarray(points_ref, dtype=np.float64).reshape(-1, 3)
+    uv = np.ascontiguousarray(pts_px, dtype=np.float64).reshape(-1, 2)
     Km = np.asarray(K, dtype=np.float64)
     fx, fy, cx, cy = float(Km[0, 0]), float(Km[1, 1]), float(Km[0, 2]), float(Km[1, 2])
     n = len(X)
@@ -553,75 +554,22 @@ def refine_pose(
         return T_cur_ref
     d = None if disparity_px is None else np.asarray(disparity_px, dtype=np.float64).reshape(-1)
     has_d = np.zeros(n, dtype=bool) if d is None or fb_px_m <= 0 else np.isfinite(d)
-    T = T_cur_ref.copy()
+    T = np.array(T_cur_ref, dtype=np.float64)
     di = np.flatnonzero(has_d)
     nd = len(di)
-    all_d = nd == n
-    dd = (d if all_d else d[di]) if d is not None and nd else np.zeros(0)
-    u_obs, v_obs = uv[:, 0].copy(), uv[:, 1].copy()
-    # Stacked rows: u (n), v (n), disparity (nd); Jacobian columns [rho (3), phi (3)] of a
-    # left perturbation, written column by column into one buffer (the zero columns once),
-    # every product in place: ~25 small numpy calls per step instead of ~45, the same
-    # arithmetic in the same order (bit-identical results).
+    dd = d[di] if d is not None and nd else np.zeros(0)
+    # Stacked rows: u (n), v (n), disparity (nd). The residuals, the Jacobian of a left
+    # perturbation [rho, phi] and its Huber-weighted copy come from one compiled loop (the
+    # arithmetic of the numpy expressions it replaced, bit for bit); the normal equations,
+    # their solution and the step stay with numpy/OpenCV (compiling them too cost ~25 s of
+    # JIT on a cold cache for no measurable gain).
     m = 2 * n + nd
     J = np.empty((m, 6))
     Jw = np.empty((m, 6))
     r = np.empty(m)
-    t1 = np.empty(n)
-    Ju, Jv, Jd = J[:n], J[n : 2 * n], J[2 * n :]
-    ru, rv, rd = r[:n], r[n : 2 * n], r[2 * n :]
-    Ju[:, 1] = 0.0
-    Jv[:, 0] = 0.0
-    Jd[:, 0] = 0.0
-    Jd[:, 1] = 0.0
-    Jd[:, 5] = 0.0
     for _ in range(iterations):
-        # The depth residuals reuse this projection's rows (the same values as projecting
-        # the depth points alone).
-        Xc = X @ T[:3, :3].T + T[:3, 3]
-        x, y, z = Xc[:, 0], Xc[:, 1], Xc[:, 2]
-        if (z <= 1e-6).any():
-            break
-        iz = 1.0 / z
-        xz, yz = x * iz, y * iz
-        np.multiply(fx, xz, out=ru)
-        ru += cx
-        ru -= u_obs
-        np.multiply(fy, yz, out=rv)
-        rv += cy
-        rv -= v_obs
-        np.multiply(fx, iz, out=Ju[:, 0])
-        np.multiply(-fx, xz, out=t1)  # -fx * xz
-        np.multiply(t1, iz, out=Ju[:, 2])
-        np.multiply(t1, yz, out=Ju[:, 3])
-        np.multiply(xz, xz, out=t1)
-        t1 += 1.0
-        np.multiply(fx, t1, out=Ju[:, 4])
-        np.multiply(-fx, yz, out=Ju[:, 5])
-        np.multiply(fy, iz, out=Jv[:, 1])
-        np.multiply(-fy, yz, out=t1)
-        np.multiply(t1, iz, out=Jv[:, 2])
-        np.multiply(yz, yz, out=t1)
-        t1 += 1.0
-        np.multiply(-fy, t1, out=Jv[:, 3])
-        np.multiply(fy, xz, out=t1)
-        np.multiply(t1, yz, out=Jv[:, 4])
-        np.multiply(fy, xz, out=Jv[:, 5])
-        if nd:
-            izd, xd, yd = (iz, x, y) if all_d else (iz[di], x[di], y[di])
-            k = fb_px_m * izd * izd
-            np.multiply(fb_px_m, izd, out=rd)
-            rd -= dd
-            np.negative(k, out=Jd[:, 2])
-            np.multiply(-k, yd, out=Jd[:, 3])
-            np.multiply(k, xd, out=Jd[:, 4])
-        a = np.abs(r)
-        if huber_px > 0:
-            # huber / max(a, huber): exactly 1 where a <= huber, huber / a beyond.
-            w = huber_px / np.maximum(a, huber_px)
-        else:
-            w = np.where(a <= huber_px, 1.0, huber_px / np.maximum(a, 1e-12))
-        np.multiply(J, w[:, None], out=Jw)
+        if not _kernels.pose_rows(X, T, uv, di, dd, fx, fy, cx, cy, float(fb_px_m), float(huber_px), J, Jw, r):
+            break  # a point at or behind the camera
         H = Jw.T @ J
         g = Jw.T @ r
         try:
@@ -761,11 +709,17 @@ def _metric_scale_rays(R: F64, t: F64, xu: F64, xv: F64, X: F64) -> float | None
 
 def _reproj_err2_px(T: F64, X: F64, p1: F64, Km: F64) -> F64:
     """Squared reprojection error (px^2) of reference points X in the current image (inf behind it)."""
-    Xc = X @ T[:3, :3].T + T[:3, 3]
-    z = np.maximum(Xc[:, 2], 1e-9)
-    du = Km[0, 0] * Xc[:, 0] / z + Km[0, 2] - p1[:, 0]
-    dv = Km[1, 1] * Xc[:, 1] / z + Km[1, 2] - p1[:, 1]
-    return np.where(Xc[:, 2] > 1e-9, du * du + dv * dv, np.inf)
+    err2: F64 = _kernels.reproj_err2(
+        np.ascontiguousarray(X),
+        np.ascontiguousarray(T),
+        np.ascontiguousarray(p1),
+        float(Km[0, 0]),
+        float(Km[1, 1]),
+        float(Km[0, 2]),
+        float(Km[1, 2]),
+        1e-9,
+    )
+    return err2
 
 
 def pose_from_essential(
@@ -808,22 +762,23 @@ def pose_from_essential(
     return best
 
 
-def _skew(v: F64) -> F64:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
 def sampson_px(R: F64, t: F64, x_ref: F64, x_cur: F64, f_px: float) -> F64:
     """Sampson distance (pixels, ``f_px`` times the normalised-plane distance) of matches to
     the epipolar geometry of ``(R, t)``; ``x_ref``, ``x_cur``: (N, 3) normalised homogeneous
     rays (z = 1). A first-order distance of each match to the nearest pair that satisfies
     ``x_cur^T [t]x R x_ref = 0``, the test of OpenCV's essential-matrix RANSAC."""
-    E = _skew(t) @ R
-    Ex0 = x_ref @ E.T
-    Etx1 = x_cur @ E
-    e = np.einsum("ni,ni->n", x_cur, Ex0)
-    den = Ex0[:, 0] ** 2 + Ex0[:, 1] ** 2 + Etx1[:, 0] ** 2 + Etx1[:, 1] ** 2
-    d: F64 = f_px * np.abs(e) / np.sqrt(np.maximum(den, 1e-300))
+    d: F64 = _kernels.sampson_distance(*_rays(R, t, x_ref, x_cur), float(f_px), False)
     return d
+
+
+def _rays(R: F64, t: F64, x_ref: F64, x_cur: F64) -> tuple[F64, F64, F64, F64]:
+    """The kernels' inputs: contiguous float64 (3, 3), (3,), (N, 3), (N, 3)."""
+    return (
+        np.ascontiguousarray(R, dtype=np.float64),
+        np.ascontiguousarray(t, dtype=np.float64).reshape(3),
+        np.ascontiguousarray(x_ref, dtype=np.float64),
+        np.ascontiguousarray(x_cur, dtype=np.float64),
+    )
 
 
 def _cross(a: F64, b: F64) -> F64:
@@ -837,12 +792,7 @@ def _cross(a: F64, b: F64) -> F64:
 
 def _sampson_residual(R: F64, t: F64, x_ref: F64, x_cur: F64, f_px: float) -> F64:
     """Signed Sampson distance (pixels) of each match to the epipolar geometry of (R, t)."""
-    E = _skew(t) @ R
-    Ex0 = x_ref @ E.T
-    Etx1 = x_cur @ E
-    e = np.einsum("ni,ni->n", x_cur, Ex0)
-    den = Ex0[:, 0] ** 2 + Ex0[:, 1] ** 2 + Etx1[:, 0] ** 2 + Etx1[:, 1] ** 2
-    r: F64 = e * (f_px / np.sqrt(np.maximum(den, 1e-300)))
+    r: F64 = _kernels.sampson_distance(*_rays(R, t, x_ref, x_cur), float(f_px), True)
     return r
 
 
@@ -850,46 +800,10 @@ def _sampson_jacobian(R: F64, t: F64, x_ref: F64, x_cur: F64, f_px: float) -> tu
     """Signed Sampson residuals (px) and their full Jacobian (N, 6) in (w, dt): a left
     rotation increment ``R <- exp(w) R`` and an unconstrained translation increment
     (numerator and denominator both differentiated: at small baselines the denominator's
-    change is as large as the numerator's). Written on (N,) columns: ~0.1 ms for 200 matches,
-    a quarter of the same with (N, 3) cross products."""
-    u0, v0, u1, v1 = x_ref[:, 0], x_ref[:, 1], x_cur[:, 0], x_cur[:, 1]
-    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R.tolist()
-    t0, t1, t2 = t.tolist()
-    y0 = r00 * u0 + r01 * v0 + r02  # y = R x_ref (x_ref[:, 2] = 1)
-    y1 = r10 * u0 + r11 * v0 + r12
-    y2 = r20 * u0 + r21 * v0 + r22
-    P0 = t1 * y2 - t2 * y1  # P = E x_ref = t x y
-    P1 = t2 * y0 - t0 * y2
-    P2 = t0 * y1 - t1 * y0
-    c0 = t2 * v1 - t1  # c = x_cur x t
-    c1 = t0 - t2 * u1
-    c2 = t1 * u1 - t0 * v1
-    Q0 = r00 * c0 + r10 * c1 + r20 * c2  # Q = E^T x_cur = R^T c
-    Q1 = r01 * c0 + r11 * c1 + r21 * c2
-    e = u1 * P0 + v1 * P1 + P2
-    den = np.maximum(P0 * P0 + P1 * P1 + Q0 * Q0 + Q1 * Q1, 1e-300)
-    inv = f_px / np.sqrt(den)
-    k = e / den
-    ty = t0 * y0 + t1 * y1 + t2 * y2
-    py = P0 * y0 + P1 * y1
-    J = np.empty((len(e), 6))
-    # Rotation: de/dw = y x c; half the denominator's gradient
-    # g_w = Q0 (R[:, 0] x c) + Q1 (R[:, 1] x c) + (t.y) (P0, P1, 0) - (P0 y0 + P1 y1) t.
-    g = Q0 * (r10 * c2 - r20 * c1) + Q1 * (r11 * c2 - r21 * c1) + ty * P0 - py * t0
-    J[:, 0] = (y1 * c2 - y2 * c1 - k * g) * inv
-    g = Q0 * (r20 * c0 - r00 * c2) + Q1 * (r21 * c0 - r01 * c2) + ty * P1 - py * t1
-    J[:, 1] = (y2 * c0 - y0 * c2 - k * g) * inv
-    g = Q0 * (r00 * c1 - r10 * c0) + Q1 * (r01 * c1 - r11 * c0) - py * t2
-    J[:, 2] = (y0 * c1 - y1 * c0 - k * g) * inv
-    # Translation: de/dt = y x x_cur; g_t = Q0 (R[:, 0] x x_cur) + Q1 (R[:, 1] x x_cur)
-    # + (-P1 y2, P0 y2, P1 y0 - P0 y1).
-    g = Q0 * (r10 - r20 * v1) + Q1 * (r11 - r21 * v1) - P1 * y2
-    J[:, 3] = (y1 - y2 * v1 - k * g) * inv
-    g = Q0 * (r20 * u1 - r00) + Q1 * (r21 * u1 - r01) + P0 * y2
-    J[:, 4] = (y2 * u1 - y0 - k * g) * inv
-    g = Q0 * (r00 * v1 - r10 * u1) + Q1 * (r01 * v1 - r11 * u1) + P1 * y0 - P0 * y1
-    J[:, 5] = (y0 * v1 - y1 * u1 - k * g) * inv
-    return e * inv, J
+    change is as large as the numerator's). One compiled loop over the matches."""
+    J = np.empty((len(x_ref), 6))
+    r: F64 = _kernels.sampson_jacobian(*_rays(R, t, x_ref, x_cur), float(f_px), J)
+    return r, J
 
 
 def _unit_cross(a: npt.ArrayLike, b: npt.ArrayLike) -> F64:

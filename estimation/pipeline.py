@@ -61,6 +61,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from estimation import _kernels
 from estimation.features import DescriptorExtractor, GridDetector, as_gray, shi_tomasi
 from estimation.flow import integrate_velocity, stereo_altitude_m, track_klt, velocity_ransac
 from estimation.keyframes import KeyframePolicy
@@ -609,22 +610,15 @@ class VisualOdometry:
                 (uv[:, 0] - self.intr.cx) * di.fx / self.intr.fx + di.cx,
                 (uv[:, 1] - self.intr.cy) * di.fy / self.intr.fy + di.cy,
             ]
-        h, w = depth_m.shape
-        u = np.rint(uv[:, 0]).astype(np.intp)
-        v = np.rint(uv[:, 1]).astype(np.intp)
-        inside = (u >= 1) & (u < w - 1) & (v >= 1) & (v < h - 1)
-        z = np.full(len(px), np.nan)
-        # One flat lookup for the pixel and its 4 neighbours (max and min are exact in float32).
-        flat = depth_m.reshape(-1) if depth_m.flags.c_contiguous else depth_m.ravel()
-        at = v[inside] * w + u[inside]
-        c = flat.take(at).astype(np.float64)
-        n_up, n_down, n_left, n_right = flat.take(at - w), flat.take(at + w), flat.take(at - 1), flat.take(at + 1)
-        nb_max = np.maximum(np.maximum(n_up, n_down), np.maximum(n_left, n_right)).astype(np.float64)
-        nb_min = np.minimum(np.minimum(n_up, n_down), np.minimum(n_left, n_right)).astype(np.float64)
-        spread = nb_max - nb_min
-        good = (c > 0) & (nb_min > 0) & (spread < 0.03 * c + 0.01)
-        good &= (c >= self.opts.min_depth_m) & (c <= self.opts.max_depth_m)
-        z[np.flatnonzero(inside)[good]] = c[good]
+        # The nearest pixel with depth whose 4 neighbours agree with it (no depth edge), in
+        # [min_depth_m, max_depth_m]; one compiled loop (estimation._kernels.depth_at).
+        z: F64 = _kernels.depth_at(
+            np.ascontiguousarray(depth_m, dtype=np.float32),
+            np.ascontiguousarray(uv[:, 0]),
+            np.ascontiguousarray(uv[:, 1]),
+            float(self.opts.min_depth_m),
+            float(self.opts.max_depth_m),
+        )
         return z
 
     def _points_3d(
@@ -1092,11 +1086,18 @@ class VisualOdometry:
     def _reproj_err2(self, T_cur_ref: F64, X_ref: F64, und_cur: F64) -> F64:
         """Squared reprojection error (px^2) of reference points in the current (undistorted)
         image; infinite behind the camera."""
-        Xc = X_ref @ T_cur_ref[:3, :3].T + T_cur_ref[:3, 3]
-        z = np.maximum(Xc[:, 2], 1e-6)
-        du = self.intr.fx * Xc[:, 0] / z + self.intr.cx - und_cur[:, 0]
-        dv = self.intr.fy * Xc[:, 1] / z + self.intr.cy - und_cur[:, 1]
-        return np.where(Xc[:, 2] > 1e-6, du * du + dv * dv, np.inf)
+        i = self.intr
+        err2: F64 = _kernels.reproj_err2(
+            np.ascontiguousarray(X_ref, dtype=np.float64),
+            np.ascontiguousarray(T_cur_ref, dtype=np.float64),
+            np.ascontiguousarray(und_cur, dtype=np.float64),
+            i.fx,
+            i.fy,
+            i.cx,
+            i.cy,
+            1e-6,
+        )
+        return err2
 
     def _refine(
         self,
@@ -1159,14 +1160,20 @@ class VisualOdometry:
         self.kf_w[gidx] = wsum
 
     def _project(self, T_cur_kf: F64, X: F64) -> tuple[F32, npt.NDArray[np.bool_]]:
-        Xc = X @ T_cur_kf[:3, :3].T + T_cur_kf[:3, 3]
+        """Pixels (float32) of keyframe points under ``T_cur_kf`` and which are in front and
+        within 20 px of the image."""
+        i = self.intr
+        Xk = np.ascontiguousarray(X, dtype=np.float64)
+        Tk = np.ascontiguousarray(T_cur_kf, dtype=np.float64)
+        if self.dist is None:
+            uv_k: F32
+            inside_k: npt.NDArray[np.bool_]
+            uv_k, inside_k = _kernels.project(Xk, Tk, i.fx, i.fy, i.cx, i.cy, float(i.width), float(i.height))
+            return uv_k, inside_k
+        Xc = _kernels.transform(Xk, Tk)
         front = Xc[:, 2] > 0.05
-        z = np.where(front, Xc[:, 2], 1.0)
-        u = self.intr.fx * Xc[:, 0] / z + self.intr.cx
-        v = self.intr.fy * Xc[:, 1] / z + self.intr.cy
-        if self.dist is not None:
-            pts, _ = cv2.projectPoints(Xc[:, None, :], np.zeros(3), np.zeros(3), self.K, self.dist)
-            u, v = pts[:, 0, 0], pts[:, 0, 1]
+        pts, _ = cv2.projectPoints(Xc[:, None, :], np.zeros(3), np.zeros(3), self.K, self.dist)
+        u, v = pts[:, 0, 0], pts[:, 0, 1]
         inside = front & (u > -20) & (u < self.intr.width + 20) & (v > -20) & (v < self.intr.height + 20)
         uv = np.empty((len(u), 2), np.float32)
         uv[:, 0] = u

@@ -1,0 +1,415 @@
+"""Compiled inner loops of the visual odometry (numba, nopython, float64, no fastmath).
+
+The per-frame work of the keyframe pipelines is a handful of small loops over ~200 tracked
+points: transform, project, residuals, Huber weights, Jacobian rows, depth lookups. Written
+as numpy expressions they are dozens of calls of 2-20 us each per frame; here each is one
+compiled loop. The callers (``estimation.motion``, ``estimation.pipeline``) keep their
+signatures; only their bodies call these.
+
+Exactness: every kernel reproduces the arithmetic of the numpy code it replaced, operation
+by operation, so the results are equal bit for bit (``tests/unit/test_kernels.py``). Two
+details make that hold: elementwise IEEE operations are the same in numba and numpy, and the
+rigid transform ``X @ R.T + t`` that numpy hands to OpenBLAS is a chain of fused
+multiply-adds in the order of the inner index (OpenBLAS's kernels on FMA machines), which
+:func:`_fma` spells out. The reductions that OpenBLAS blocks and unrolls (``J^T J``, dot
+products) stay in numpy with the callers.
+
+Compiled once and cached on disk next to this module (``__pycache__``); the first import in
+a fresh environment compiles them (see ``docs/estimation.md`` for the measured cost).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from llvmlite import ir
+from numba import njit, types
+from numba.core import cgutils
+from numba.extending import intrinsic
+
+__all__ = [
+    "depth_at",
+    "flow_hypotheses",
+    "pose_rows",
+    "project",
+    "reproj_err2",
+    "sampson_distance",
+    "sampson_jacobian",
+    "transform",
+]
+
+
+def _fma_typer(typingctx: Any, a: Any, b: Any, c: Any) -> Any:
+    """Typing and code of :data:`_fma`: ``a * b + c`` rounded once (LLVM's ``llvm.fma.f64``)."""
+    sig = types.float64(types.float64, types.float64, types.float64)
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+        d = ir.DoubleType()
+        fma_fn = ir.FunctionType(d, [d, d, d])
+        fn = cgutils.get_or_insert_function(builder.module, fma_fn, "llvm.fma.f64")  # type: ignore[no-untyped-call]
+        return builder.call(fn, args)
+
+    return sig, codegen
+
+
+_fma: Any = intrinsic(_fma_typer)
+"""``_fma(a, b, c)`` in compiled code: the fused multiply-add of OpenBLAS's FMA kernels."""
+
+
+@njit(cache=True)
+def _dot3(A: Any, i: int, B: Any, j: int) -> float:
+    """``A[i] . B[j]`` (3-vectors) as OpenBLAS rounds the product ``A @ B.T`` of an (N, 3) ``A``:
+    fused multiply-adds in index order, or, for a single row (its matrix-vector path), the
+    middle term first."""
+    if A.shape[0] == 1:
+        return float(_fma(A[i, 2], B[j, 2], _fma(A[i, 0], B[j, 0], A[i, 1] * B[j, 1])))
+    return float(_fma(A[i, 2], B[j, 2], _fma(A[i, 1], B[j, 1], A[i, 0] * B[j, 0])))
+
+
+@njit(cache=True)
+def _xform(X: Any, T: Any, i: int, j: int) -> float:
+    """Row ``j`` of ``R @ X[i] + t`` as numpy's ``X @ T[:3, :3].T + T[:3, 3]`` rounds it."""
+    return float(_dot3(X, i, T, j) + T[j, 3])
+
+
+@njit(cache=True)
+def transform(X: Any, T: Any) -> Any:
+    """``X @ T[:3, :3].T + T[:3, 3]`` for (N, 3) points and a (4, 4) (or (3, 4)) transform."""
+    n = X.shape[0]
+    out = np.empty((n, 3))
+    for i in range(n):
+        out[i, 0] = _xform(X, T, i, 0)
+        out[i, 1] = _xform(X, T, i, 1)
+        out[i, 2] = _xform(X, T, i, 2)
+    return out
+
+
+@njit(cache=True)
+def pose_rows(
+    X: Any,
+    T: Any,
+    uv: Any,
+    di: Any,
+    dd: Any,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    fb: float,
+    huber: float,
+    J: Any,
+    Jw: Any,
+    r: Any,
+) -> bool:
+    """One Gauss-Newton step's rows of ``estimation.motion.refine_pose``, in place.
+
+    Rows ``0..n-1`` are the u reprojection residuals, ``n..2n-1`` the v ones, ``2n + k`` the
+    disparity residual of point ``di[k]`` (``fb / z - dd[k]``); ``J`` (2n + nd, 6) their
+    Jacobian in a left perturbation ``[rho, phi]``, ``r`` the residuals, ``Jw`` the
+    Huber-weighted Jacobian (weight ``huber / max(|r|, huber)``, or 1 within and
+    ``huber / max(|r|, 1e-12)`` beyond when ``huber <= 0``). False (buffers untouched) when
+    a point is at or behind ``z = 1e-6``.
+    """
+    n = X.shape[0]
+    nd = di.shape[0]
+    Xc = np.empty((n, 3))
+    for i in range(n):
+        z = _xform(X, T, i, 2)
+        if z <= 1e-6:
+            return False
+        Xc[i, 2] = z
+        Xc[i, 0] = _xform(X, T, i, 0)
+        Xc[i, 1] = _xform(X, T, i, 1)
+    for i in range(n):
+        x = Xc[i, 0]
+        y = Xc[i, 1]
+        iz = 1.0 / Xc[i, 2]
+        xz = x * iz
+        yz = y * iz
+        r[i] = fx * xz + cx - uv[i, 0]
+        r[n + i] = fy * yz + cy - uv[i, 1]
+        t1 = -fx * xz
+        J[i, 0] = fx * iz
+        J[i, 1] = 0.0
+        J[i, 2] = t1 * iz
+        J[i, 3] = t1 * yz
+        J[i, 4] = fx * (xz * xz + 1.0)
+        J[i, 5] = -fx * yz
+        k = n + i
+        J[k, 0] = 0.0
+        J[k, 1] = fy * iz
+        J[k, 2] = (-fy * yz) * iz
+        J[k, 3] = -fy * (yz * yz + 1.0)
+        J[k, 4] = (fy * xz) * yz
+        J[k, 5] = fy * xz
+    for m in range(nd):
+        i = di[m]
+        iz = 1.0 / Xc[i, 2]
+        kz = fb * iz * iz
+        k = 2 * n + m
+        r[k] = fb * iz - dd[m]
+        J[k, 0] = 0.0
+        J[k, 1] = 0.0
+        J[k, 2] = -kz
+        J[k, 3] = -kz * Xc[i, 1]
+        J[k, 4] = kz * Xc[i, 0]
+        J[k, 5] = 0.0
+    for k in range(2 * n + nd):
+        a = abs(r[k])
+        if huber > 0:
+            w = huber / (a if (a > huber or a != a) else huber)
+        elif a <= huber:
+            w = 1.0
+        else:
+            w = huber / (a if (a > 1e-12 or a != a) else 1e-12)
+        for c in range(6):
+            Jw[k, c] = J[k, c] * w
+    return True
+
+
+@njit(cache=True)
+def reproj_err2(X: Any, T: Any, uv: Any, fx: float, fy: float, cx: float, cy: float, z_min: float) -> Any:
+    """Squared reprojection error (px^2) of (N, 3) reference points under ``T`` against (N, 2)
+    pixels; ``inf`` where the point is at or behind ``z = z_min``."""
+    n = X.shape[0]
+    out = np.empty(n)
+    for i in range(n):
+        z = _xform(X, T, i, 2)
+        zc = z if z > z_min or z != z else z_min
+        du = fx * _xform(X, T, i, 0) / zc + cx - uv[i, 0]
+        dv = fy * _xform(X, T, i, 1) / zc + cy - uv[i, 1]
+        out[i] = du * du + dv * dv if z > z_min else np.inf
+    return out
+
+
+@njit(cache=True)
+def project(X: Any, T: Any, fx: float, fy: float, cx: float, cy: float, width: float, height: float) -> Any:
+    """Pinhole projection of (N, 3) points under ``T``: (N, 2) float32 pixels and (N,) bool
+    "in front (z > 0.05 m) and within 20 px of the image"."""
+    n = X.shape[0]
+    uv = np.empty((n, 2), np.float32)
+    inside = np.empty(n, np.bool_)
+    for i in range(n):
+        z = _xform(X, T, i, 2)
+        front = z > 0.05
+        zc = z if front else 1.0
+        u = fx * _xform(X, T, i, 0) / zc + cx
+        v = fy * _xform(X, T, i, 1) / zc + cy
+        uv[i, 0] = u
+        uv[i, 1] = v
+        inside[i] = front and u > -20 and u < width + 20 and v > -20 and v < height + 20
+    return uv, inside
+
+
+@njit(cache=True)
+def depth_at(depth: Any, u: Any, v: Any, min_m: float, max_m: float) -> Any:
+    """Depth (float64 metres) of a float32 depth image at the pixels nearest (rounded half to
+    even) to ``(u, v)``; NaN outside a 1-pixel border, where the pixel has no depth (<= 0),
+    outside ``[min_m, max_m]``, or at a depth edge (the spread of the 4 neighbours, which
+    must all have depth, reaches ``0.03 z + 0.01``)."""
+    h, w = depth.shape
+    n = u.shape[0]
+    out = np.empty(n)
+    for i in range(n):
+        out[i] = np.nan
+        fu = np.rint(u[i])
+        fv = np.rint(v[i])
+        if not (fu >= 1 and fu < w - 1 and fv >= 1 and fv < h - 1):
+            continue
+        iu = int(fu)
+        iv = int(fv)
+        c = np.float64(depth[iv, iu])
+        a = depth[iv - 1, iu]
+        b = depth[iv + 1, iu]
+        left = depth[iv, iu - 1]
+        right = depth[iv, iu + 1]
+        if a != a or b != b or left != left or right != right:
+            continue
+        hi = np.float64(max(max(a, b), max(left, right)))
+        lo = np.float64(min(min(a, b), min(left, right)))
+        if c > 0 and lo > 0 and hi - lo < 0.03 * c + 0.01 and c >= min_m and c <= max_m:
+            out[i] = c
+    return out
+
+
+@njit(cache=True)
+def sampson_distance(R: Any, t: Any, x_ref: Any, x_cur: Any, f_px: float, signed: bool) -> Any:
+    """Sampson distance (pixels) of (N, 3) normalised ray pairs (z = 1) to the epipolar
+    geometry of ``(R, t)``: signed ``e * (f / sqrt(den))`` or ``f * |e| / sqrt(den)``."""
+    E = np.empty((3, 3))
+    # E = [t]x @ R as numpy's product of the skew matrix and R rounds it (one zero term).
+    for j in range(3):
+        E[0, j] = _fma(t[1], R[2, j], -t[2] * R[1, j])
+        E[1, j] = _fma(-t[0], R[2, j], t[2] * R[0, j])
+        E[2, j] = _fma(t[0], R[1, j], -t[1] * R[0, j])
+    Et = np.ascontiguousarray(E.T)
+    n = x_ref.shape[0]
+    out = np.empty(n)
+    for i in range(n):
+        a0 = _dot3(x_ref, i, E, 0)  # E x_ref
+        a1 = _dot3(x_ref, i, E, 1)
+        a2 = _dot3(x_ref, i, E, 2)
+        b0 = _dot3(x_cur, i, Et, 0)  # E^T x_cur
+        b1 = _dot3(x_cur, i, Et, 1)
+        # x_cur . (E x_ref) in the order of numpy's einsum for three terms.
+        e = (x_cur[i, 0] * a0 + x_cur[i, 2] * a2) + x_cur[i, 1] * a1
+        den = a0 * a0 + a1 * a1 + b0 * b0 + b1 * b1
+        s = np.sqrt(den if den > 1e-300 or den != den else 1e-300)
+        out[i] = e * (f_px / s) if signed else f_px * abs(e) / s
+    return out
+
+
+@njit(cache=True)
+def sampson_jacobian(R: Any, t: Any, x_ref: Any, x_cur: Any, f_px: float, J: Any) -> Any:
+    """Signed Sampson residuals (px) of (N, 3) ray pairs under ``(R, t)`` and, into ``J``
+    (N, 6), their Jacobian in a left rotation increment and a translation increment (the
+    formulas of ``estimation.motion._sampson_jacobian``, term by term)."""
+    r00, r01, r02 = R[0, 0], R[0, 1], R[0, 2]
+    r10, r11, r12 = R[1, 0], R[1, 1], R[1, 2]
+    r20, r21, r22 = R[2, 0], R[2, 1], R[2, 2]
+    t0, t1, t2 = t[0], t[1], t[2]
+    n = x_ref.shape[0]
+    res = np.empty(n)
+    for i in range(n):
+        u0 = x_ref[i, 0]
+        v0 = x_ref[i, 1]
+        u1 = x_cur[i, 0]
+        v1 = x_cur[i, 1]
+        y0 = r00 * u0 + r01 * v0 + r02
+        y1 = r10 * u0 + r11 * v0 + r12
+        y2 = r20 * u0 + r21 * v0 + r22
+        P0 = t1 * y2 - t2 * y1
+        P1 = t2 * y0 - t0 * y2
+        P2 = t0 * y1 - t1 * y0
+        c0 = t2 * v1 - t1
+        c1 = t0 - t2 * u1
+        c2 = t1 * u1 - t0 * v1
+        Q0 = r00 * c0 + r10 * c1 + r20 * c2
+        Q1 = r01 * c0 + r11 * c1 + r21 * c2
+        e = u1 * P0 + v1 * P1 + P2
+        den = P0 * P0 + P1 * P1 + Q0 * Q0 + Q1 * Q1
+        if not (den > 1e-300 or den != den):
+            den = 1e-300
+        inv = f_px / np.sqrt(den)
+        k = e / den
+        ty = t0 * y0 + t1 * y1 + t2 * y2
+        py = P0 * y0 + P1 * y1
+        g = Q0 * (r10 * c2 - r20 * c1) + Q1 * (r11 * c2 - r21 * c1) + ty * P0 - py * t0
+        J[i, 0] = (y1 * c2 - y2 * c1 - k * g) * inv
+        g = Q0 * (r20 * c0 - r00 * c2) + Q1 * (r21 * c0 - r01 * c2) + ty * P1 - py * t1
+        J[i, 1] = (y2 * c0 - y0 * c2 - k * g) * inv
+        g = Q0 * (r00 * c1 - r10 * c0) + Q1 * (r01 * c1 - r11 * c0) - py * t2
+        J[i, 2] = (y0 * c1 - y1 * c0 - k * g) * inv
+        g = Q0 * (r10 - r20 * v1) + Q1 * (r11 - r21 * v1) - P1 * y2
+        J[i, 3] = (y1 - y2 * v1 - k * g) * inv
+        g = Q0 * (r20 * u1 - r00) + Q1 * (r21 * u1 - r01) + P0 * y2
+        J[i, 4] = (y2 * u1 - y0 - k * g) * inv
+        g = Q0 * (r00 * v1 - r10 * u1) + Q1 * (r01 * v1 - r11 * u1) + P1 * y0 - P0 * y1
+        J[i, 5] = (y0 * v1 - y1 * u1 - k * g) * inv
+        res[i] = e * inv
+    return res
+
+
+@njit(cache=True)
+def _solve6(M: Any, y: Any) -> bool:
+    """Solve the square system ``M x = y`` in place (``y`` becomes ``x``) by Gaussian
+    elimination with partial pivoting (LAPACK's ``dgesv`` algorithm, unblocked); ``M`` is
+    overwritten. False when a pivot is zero. (Sizes are read from ``M``: constant 6x6
+    bounds made LLVM unroll every loop and compile for seconds.)"""
+    m = M.shape[0]
+    for c in range(m):
+        p = c
+        best = abs(M[c, c])
+        for r in range(c + 1, m):
+            if abs(M[r, c]) > best:
+                best = abs(M[r, c])
+                p = r
+        if best == 0.0:
+            return False
+        if p != c:
+            for k in range(m):
+                tmp = M[c, k]
+                M[c, k] = M[p, k]
+                M[p, k] = tmp
+            tmp = y[c]
+            y[c] = y[p]
+            y[p] = tmp
+        inv = 1.0 / M[c, c]
+        for r in range(c + 1, m):
+            f = M[r, c] * inv
+            if f != 0.0:
+                for k in range(c + 1, m):
+                    M[r, k] -= f * M[c, k]
+                y[r] -= f * y[c]
+    for c in range(m - 1, -1, -1):
+        s = y[c]
+        for k in range(c + 1, m):
+            s -= M[c, k] * y[k]
+        y[c] = s / M[c, c]
+    return True
+
+
+@njit(cache=True)
+def flow_hypotheses(L: Any, flow: Any, idx: Any, ridge: float, thr2: float) -> Any:
+    """Score 3-point twist hypotheses of ``estimation.flow.velocity_ransac``.
+
+    For each row of ``idx`` (k, 3), the twist that fits the three points' interaction
+    matrices ``L`` (n, 2, 6) to their flow (n, 2) (normal equations with ``ridge`` on the
+    diagonal), then the points whose flow it predicts within ``sqrt(thr2)``; a hypothesis's
+    scoring stops once it has missed too many points to beat the best so far. Returns the
+    first hypothesis with the most inliers: ``(index, count, inlier mask (n,))``.
+    """
+    n = L.shape[0]
+    dof = L.shape[2]  # 6; read from the array so LLVM does not unroll every loop
+    rows = 2 * idx.shape[1]
+    A = np.empty((rows, dof))
+    b = np.empty(rows)
+    M = np.empty((dof, dof))
+    x = np.empty(dof)
+    best_j = 0
+    best_count = -1
+    best_mask = np.zeros(n, np.bool_)
+    mask = np.empty(n, np.bool_)
+    for h in range(idx.shape[0]):
+        for a in range(idx.shape[1]):
+            p = idx[h, a]
+            for q in range(2):
+                for c in range(dof):
+                    A[2 * a + q, c] = L[p, q, c]
+                b[2 * a + q] = flow[p, q]
+        for i in range(dof):
+            for j in range(dof):
+                s = 0.0
+                for r in range(rows):
+                    s += A[r, i] * A[r, j]
+                M[i, j] = s
+            M[i, i] += ridge
+            s = 0.0
+            for r in range(rows):
+                s += A[r, i] * b[r]
+            x[i] = s
+        if not _solve6(M, x):
+            continue
+        count = 0
+        misses = 0
+        for p in range(n):
+            e0 = -flow[p, 0]
+            e1 = -flow[p, 1]
+            for c in range(dof):
+                e0 += L[p, 0, c] * x[c]
+                e1 += L[p, 1, c] * x[c]
+            if e0 * e0 + e1 * e1 < thr2:
+                mask[p] = True
+                count += 1
+            else:
+                mask[p] = False
+                misses += 1
+                if misses >= n - best_count:
+                    break  # cannot beat the best any more (ties keep the earlier one)
+        if count > best_count:
+            best_count = count
+            best_j = h
+            for p in range(n):  # (a slice assignment costs ~3 s of compilation)
+                best_mask[p] = mask[p]
+    return best_j, best_count, best_mask

@@ -1,0 +1,422 @@
+"""The compiled VO kernels (estimation._kernels) against plain numpy references.
+
+Each reference is the numpy expression the kernel replaced, written out here. The kernels
+reproduce its arithmetic operation by operation; on this project's machines the results are
+equal bit for bit (the VO trajectories did not move by a bit when the kernels came in), but
+numpy's matrix products go through OpenBLAS, whose rounding depends on the CPU's code path,
+so the floating-point comparisons here allow a few units in the last place (``same``). Masks
+and the flow RANSAC's inlier decisions are compared exactly.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from estimation import _kernels
+from estimation.motion import refine_essential, refine_pose
+
+SIZES = [1, 2, 3, 4, 5, 7, 16, 33, 200, 457]
+
+
+def same(a: np.ndarray, b: np.ndarray, rtol: float = 1e-12) -> bool:
+    """Equal to rounding (and NaN where the other is NaN); float32 to its own precision."""
+    a, b = np.asarray(a), np.asarray(b)
+    if np.float32 in (a.dtype, b.dtype):
+        rtol = max(rtol, 1e-6)
+    return a.shape == b.shape and a.dtype == b.dtype and bool(np.allclose(a, b, rtol=rtol, atol=rtol, equal_nan=True))
+
+
+FX, FY, CX, CY = 262.5, 263.1, 159.7, 119.4
+
+
+def _pose(rng: np.random.Generator, rot_sigma: float = 0.2, t_sigma: float = 0.1) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(rng.normal(scale=rot_sigma, size=3)).as_matrix()
+    T[:3, 3] = rng.normal(scale=t_sigma, size=3)
+    return T
+
+
+def _points(rng: np.random.Generator, n: int, z_lo: float = 0.3) -> np.ndarray:
+    return np.asarray(np.c_[rng.uniform(-2.0, 2.0, (n, 2)), rng.uniform(z_lo, 5.0, n)], dtype=np.float64)
+
+
+def _pixels(rng: np.random.Generator, X: np.ndarray, T: np.ndarray) -> np.ndarray:
+    Xc = X @ T[:3, :3].T + T[:3, 3]
+    z = np.where(np.abs(Xc[:, 2]) > 1e-3, Xc[:, 2], 1.0)
+    uv = np.c_[FX * Xc[:, 0] / z + CX, FY * Xc[:, 1] / z + CY]
+    return np.asarray(uv + rng.normal(scale=2.0, size=uv.shape), dtype=np.float64)
+
+
+@pytest.mark.parametrize("n", SIZES)
+def test_transform_equals_numpy_matmul(n: int) -> None:
+    rng = np.random.default_rng(n)
+    for _ in range(20):
+        X = rng.normal(scale=3.0, size=(n, 3))
+        T = _pose(rng, 1.0, 2.0)
+        assert same(_kernels.transform(X, T), X @ T[:3, :3].T + T[:3, 3])
+
+
+def _pose_rows_reference(
+    X: np.ndarray, T: np.ndarray, uv: np.ndarray, di: np.ndarray, dd: np.ndarray, fb: float, huber: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """One step's rows of refine_pose, as its numpy body built them."""
+    n = len(X)
+    Xc = X @ T[:3, :3].T + T[:3, 3]
+    x, y, z = Xc[:, 0], Xc[:, 1], Xc[:, 2]
+    if (z <= 1e-6).any():
+        return None
+    iz = 1.0 / z
+    xz, yz = x * iz, y * iz
+    zero = np.zeros(n)
+    Ju = np.stack([FX * iz, zero, (-FX * xz) * iz, (-FX * xz) * yz, FX * (xz * xz + 1.0), -FX * yz], axis=1)
+    Jv = np.stack([zero, FY * iz, (-FY * yz) * iz, -FY * (yz * yz + 1.0), (FY * xz) * yz, FY * xz], axis=1)
+    izd, xd, yd = iz[di], x[di], y[di]
+    k = fb * izd * izd
+    zd = np.zeros(len(di))
+    Jd = np.stack([zd, zd, -k, -k * yd, k * xd, zd], axis=1)
+    r = np.concatenate([FX * xz + CX - uv[:, 0], FY * yz + CY - uv[:, 1], fb * izd - dd])
+    J = np.concatenate([Ju, Jv, Jd])
+    a = np.abs(r)
+    if huber > 0:
+        w = huber / np.maximum(a, huber)
+    else:
+        w = np.where(a <= huber, 1.0, huber / np.maximum(a, 1e-12))
+    return J, J * w[:, None], r
+
+
+@pytest.mark.parametrize("n", SIZES)
+@pytest.mark.parametrize("huber", [1.0, 0.0])
+def test_pose_rows_equal_numpy(n: int, huber: float) -> None:
+    rng = np.random.default_rng(100 + n)
+    for _ in range(10):
+        X = _points(rng, n)
+        T = _pose(rng, 0.05, 0.05)
+        uv = _pixels(rng, X, T)
+        di = np.flatnonzero(rng.random(n) < 0.7)
+        dd = 26.0 / X[di, 2] + rng.normal(scale=0.5, size=len(di))
+        m = 2 * n + len(di)
+        J, Jw, r = np.empty((m, 6)), np.empty((m, 6)), np.empty(m)
+        ok = _kernels.pose_rows(X, T, uv, di, dd, FX, FY, CX, CY, 26.0, huber, J, Jw, r)
+        ref = _pose_rows_reference(X, T, uv, di, dd, 26.0, huber)
+        assert ref is not None and ok
+        assert same(J, ref[0])
+        assert same(Jw, ref[1])
+        assert same(r, ref[2])
+
+
+def test_pose_rows_refuse_a_point_behind_the_camera() -> None:
+    rng = np.random.default_rng(7)
+    X = _points(rng, 20)
+    X[5, 2] = -1.0
+    T = np.eye(4)
+    J, Jw, r = np.full((40, 6), 7.0), np.full((40, 6), 7.0), np.full(40, 7.0)
+    di = np.zeros(0, np.intp)
+    assert not _kernels.pose_rows(X, T, _pixels(rng, X, T), di, np.zeros(0), FX, FY, CX, CY, 0.0, 1.0, J, Jw, r)
+    assert (J == 7.0).all() and (r == 7.0).all()  # untouched
+
+
+@pytest.mark.parametrize("n", [4, 5, 16, 200, 457])
+def test_refine_pose_equals_numpy_loop(n: int) -> None:
+    rng = np.random.default_rng(150 + n)
+    for trial in range(10):
+        X = _points(rng, n)
+        T_true = _pose(rng, 0.05, 0.05)
+        uv = _pixels(rng, X, T_true)
+        di = np.flatnonzero(rng.random(n) < 0.7) if trial % 2 else np.zeros(0, np.intp)
+        dd = 26.0 / (X[di] @ T_true[2, :3] + T_true[2, 3]) + rng.normal(scale=0.2, size=len(di))
+        T0 = T_true.copy()
+        T0[:3, 3] += rng.normal(scale=0.01, size=3)
+        # The loop as numpy wrote it: normal equations by BLAS, LAPACK solve, cv2.Rodrigues.
+        T_ref = T0.copy()
+        for _ in range(4):
+            rows = _pose_rows_reference(X, T_ref, uv, di, dd, 26.0, 1.0)
+            assert rows is not None
+            J, Jw, r = rows
+            xi = -np.linalg.solve(Jw.T @ J, Jw.T @ r)
+            dT = np.eye(4)
+            dT[:3, :3] = cv2.Rodrigues(xi[3:])[0]
+            dT[:3, 3] = xi[:3]
+            T_ref = dT @ T_ref
+            if float(xi @ xi) < 1e-10:
+                break
+        K = np.array([[FX, 0.0, CX], [0.0, FY, CY], [0.0, 0.0, 1.0]])
+        d = np.full(n, np.nan)
+        d[di] = dd
+        T = refine_pose(T0, X, uv, K, d if len(di) else None, 26.0, huber_px=1.0, iterations=4)
+        assert same(T, T_ref, rtol=1e-9)  # after Gauss-Newton steps
+        if n >= 200:  # enough points that the 2 px noise averages out: it moved towards the truth
+            assert np.abs(T[:3, 3] - T_true[:3, 3]).max() < np.abs(T0[:3, 3] - T_true[:3, 3]).max()
+
+
+@pytest.mark.parametrize("n", SIZES)
+@pytest.mark.parametrize("z_min", [1e-6, 1e-9])
+def test_reproj_err2_equals_numpy(n: int, z_min: float) -> None:
+    rng = np.random.default_rng(200 + n)
+    for _ in range(10):
+        X = _points(rng, n, z_lo=-0.5)  # some behind the camera
+        T = _pose(rng)
+        uv = _pixels(rng, X, T)
+        Xc = X @ T[:3, :3].T + T[:3, 3]
+        z = np.maximum(Xc[:, 2], z_min)
+        du = FX * Xc[:, 0] / z + CX - uv[:, 0]
+        dv = FY * Xc[:, 1] / z + CY - uv[:, 1]
+        ref = np.where(Xc[:, 2] > z_min, du * du + dv * dv, np.inf)
+        assert same(_kernels.reproj_err2(X, T, uv, FX, FY, CX, CY, z_min), ref)
+
+
+@pytest.mark.parametrize("n", SIZES)
+def test_project_equals_numpy(n: int) -> None:
+    rng = np.random.default_rng(300 + n)
+    for _ in range(10):
+        X = _points(rng, n, z_lo=-0.5)
+        T = _pose(rng)
+        Xc = X @ T[:3, :3].T + T[:3, 3]
+        front = Xc[:, 2] > 0.05
+        z = np.where(front, Xc[:, 2], 1.0)
+        u = FX * Xc[:, 0] / z + CX
+        v = FY * Xc[:, 1] / z + CY
+        inside = front & (u > -20) & (u < 320 + 20) & (v > -20) & (v < 240 + 20)
+        ref = np.empty((n, 2), np.float32)
+        ref[:, 0], ref[:, 1] = u, v
+        uv, ins = _kernels.project(X, T, FX, FY, CX, CY, 320.0, 240.0)
+        assert uv.dtype == np.float32 and same(uv, ref)
+        assert np.array_equal(ins, inside)
+
+
+def _depth_at_reference(depth: np.ndarray, uv: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    h, w = depth.shape
+    u = np.rint(uv[:, 0]).astype(np.intp)
+    v = np.rint(uv[:, 1]).astype(np.intp)
+    inside = (u >= 1) & (u < w - 1) & (v >= 1) & (v < h - 1)
+    z = np.full(len(uv), np.nan)
+    flat = depth.reshape(-1)
+    at = v[inside] * w + u[inside]
+    c = flat.take(at).astype(np.float64)
+    up, down, left, right = flat.take(at - w), flat.take(at + w), flat.take(at - 1), flat.take(at + 1)
+    nb_max = np.maximum(np.maximum(up, down), np.maximum(left, right)).astype(np.float64)
+    nb_min = np.minimum(np.minimum(up, down), np.minimum(left, right)).astype(np.float64)
+    good = (c > 0) & (nb_min > 0) & (nb_max - nb_min < 0.03 * c + 0.01) & (c >= lo) & (c <= hi)
+    z[np.flatnonzero(inside)[good]] = c[good]
+    return z
+
+
+def test_depth_at_equals_numpy() -> None:
+    rng = np.random.default_rng(11)
+    h, w = 60, 80
+    # Smooth depth with holes (0), NaNs, far and near values and a step edge.
+    depth = (1.0 + 0.01 * np.add.outer(np.arange(h), np.arange(w))).astype(np.float32)
+    depth[:, 40:] += 1.5
+    depth[rng.random((h, w)) < 0.05] = 0.0
+    depth[rng.random((h, w)) < 0.02] = np.nan
+    depth[:5, :5] = 9.0
+    depth[10:12, 10:12] = 0.05
+    uv = np.c_[rng.uniform(-3, w + 3, 3000), rng.uniform(-3, h + 3, 3000)]
+    uv[:50] = np.round(uv[:50]) + 0.5  # ties: rounded half to even
+    z = _kernels.depth_at(depth, uv[:, 0].copy(), uv[:, 1].copy(), 0.1, 6.0)
+    ref = _depth_at_reference(depth, uv, 0.1, 6.0)
+    assert same(z, ref)
+    assert np.isfinite(z).sum() > 1000  # the test exercised the accepting branch too
+    # A NaN pixel (numpy's cast would warn) has no depth.
+    nan_px = np.array([np.nan, 30.0])
+    assert np.isnan(_kernels.depth_at(depth, nan_px, nan_px[::-1].copy(), 0.1, 6.0)).all()
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def _rays(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
+    x0 = np.c_[rng.normal(scale=0.4, size=(n, 2)), np.ones(n)]
+    x1 = x0 + np.c_[rng.normal(scale=0.02, size=(n, 2)), np.zeros(n)]
+    return x0, x1
+
+
+@pytest.mark.parametrize("n", SIZES)
+def test_sampson_distance_equals_numpy(n: int) -> None:
+    rng = np.random.default_rng(400 + n)
+    for _ in range(10):
+        T = _pose(rng, 0.05, 0.05)
+        R, t = T[:3, :3].copy(), T[:3, 3].copy()
+        x0, x1 = _rays(rng, n)
+        E = _skew(t) @ R
+        Ex0 = x0 @ E.T
+        Etx1 = x1 @ E
+        e = np.einsum("ni,ni->n", x1, Ex0)
+        den = np.maximum(Ex0[:, 0] ** 2 + Ex0[:, 1] ** 2 + Etx1[:, 0] ** 2 + Etx1[:, 1] ** 2, 1e-300)
+        assert same(_kernels.sampson_distance(R, t, x0, x1, 262.0, True), e * (262.0 / np.sqrt(den)))
+        assert same(_kernels.sampson_distance(R, t, x0, x1, 262.0, False), 262.0 * np.abs(e) / np.sqrt(den))
+
+
+def _sampson_jacobian_reference(R: np.ndarray, t: np.ndarray, x0: np.ndarray, x1: np.ndarray, f: float):  # type: ignore[no-untyped-def]
+    u0, v0, u1, v1 = x0[:, 0], x0[:, 1], x1[:, 0], x1[:, 1]
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R.tolist()
+    t0, t1, t2 = t.tolist()
+    y0 = r00 * u0 + r01 * v0 + r02
+    y1 = r10 * u0 + r11 * v0 + r12
+    y2 = r20 * u0 + r21 * v0 + r22
+    P0, P1, P2 = t1 * y2 - t2 * y1, t2 * y0 - t0 * y2, t0 * y1 - t1 * y0
+    c0, c1, c2 = t2 * v1 - t1, t0 - t2 * u1, t1 * u1 - t0 * v1
+    Q0 = r00 * c0 + r10 * c1 + r20 * c2
+    Q1 = r01 * c0 + r11 * c1 + r21 * c2
+    e = u1 * P0 + v1 * P1 + P2
+    den = np.maximum(P0 * P0 + P1 * P1 + Q0 * Q0 + Q1 * Q1, 1e-300)
+    inv = f / np.sqrt(den)
+    k = e / den
+    ty = t0 * y0 + t1 * y1 + t2 * y2
+    py = P0 * y0 + P1 * y1
+    g = [
+        Q0 * (r10 * c2 - r20 * c1) + Q1 * (r11 * c2 - r21 * c1) + ty * P0 - py * t0,
+        Q0 * (r20 * c0 - r00 * c2) + Q1 * (r21 * c0 - r01 * c2) + ty * P1 - py * t1,
+        Q0 * (r00 * c1 - r10 * c0) + Q1 * (r01 * c1 - r11 * c0) - py * t2,
+        Q0 * (r10 - r20 * v1) + Q1 * (r11 - r21 * v1) - P1 * y2,
+        Q0 * (r20 * u1 - r00) + Q1 * (r21 * u1 - r01) + P0 * y2,
+        Q0 * (r00 * v1 - r10 * u1) + Q1 * (r01 * v1 - r11 * u1) + P1 * y0 - P0 * y1,
+    ]
+    de = [y1 * c2 - y2 * c1, y2 * c0 - y0 * c2, y0 * c1 - y1 * c0, y1 - y2 * v1, y2 * u1 - y0, y0 * v1 - y1 * u1]
+    return e * inv, np.stack([(de[i] - k * g[i]) * inv for i in range(6)], axis=1)
+
+
+def _sampson_reference(R: np.ndarray, t: np.ndarray, x0: np.ndarray, x1: np.ndarray, f: float) -> np.ndarray:
+    E = _skew(t) @ R
+    Ex0 = x0 @ E.T
+    Etx1 = x1 @ E
+    e = np.einsum("ni,ni->n", x1, Ex0)
+    den = np.maximum(Ex0[:, 0] ** 2 + Ex0[:, 1] ** 2 + Etx1[:, 0] ** 2 + Etx1[:, 1] ** 2, 1e-300)
+    return np.asarray(e * (f / np.sqrt(den)), dtype=np.float64)
+
+
+@pytest.mark.parametrize("n", SIZES)
+def test_sampson_jacobian_equals_numpy(n: int) -> None:
+    rng = np.random.default_rng(500 + n)
+    T = _pose(rng, 0.05, 0.05)
+    R, t = T[:3, :3].copy(), T[:3, 3].copy()
+    x0, x1 = _rays(rng, n)
+    r_ref, J_ref = _sampson_jacobian_reference(R, t, x0, x1, 262.0)
+    J = np.empty((n, 6))
+    r = _kernels.sampson_jacobian(R, t, x0, x1, 262.0, J)
+    assert same(r, r_ref)
+    assert same(J, J_ref)
+
+
+def _refine_essential_reference(  # type: ignore[no-untyped-def]
+    R: np.ndarray, t: np.ndarray, x0: np.ndarray, x1: np.ndarray, f: float, huber: float, iterations: int
+):
+    """refine_essential as numpy and OpenCV wrote it before the kernels."""
+
+    def cost_of(r: np.ndarray) -> float:
+        a = np.abs(r)
+        m = np.minimum(a, huber)
+        return 0.5 * float(m @ (a + a - m))
+
+    def unit_cross(a: np.ndarray, b: tuple[float, float, float] | np.ndarray) -> np.ndarray:
+        (a0, a1, a2), (b0, b1, b2) = np.asarray(a).tolist(), np.asarray(b).tolist()
+        c = np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
+        return np.asarray(c / np.sqrt(float(c @ c)), dtype=np.float64)
+
+    t = t / np.linalg.norm(t)
+    r, J6 = _sampson_jacobian_reference(R, t, x0, x1, f)
+    cost = cost_of(r)
+    lam = 0.0
+    B = np.empty((3, 2))
+    for it in range(iterations):
+        if it:
+            r, J6 = _sampson_jacobian_reference(R, t, x0, x1, f)
+        b1 = unit_cross(t, (1.0, 0.0, 0.0) if abs(t[0]) < 0.9 else (0.0, 1.0, 0.0))
+        B[:, 0] = b1
+        B[:, 1] = unit_cross(t, b1)
+        J = np.empty((len(r), 5))
+        J[:, :3] = J6[:, :3]
+        J[:, 3:] = J6[:, 3:] @ B
+        w = huber / np.maximum(np.abs(r), huber)
+        Jw = J * w[:, None]
+        H = Jw.T @ J
+        g = (Jw.T @ r).reshape(5, 1)
+        accepted = False
+        for _ in range(4):
+            A = H
+            if lam > 0:
+                A = H.copy()
+                A.flat[::6] *= 1.0 + lam
+            ok, sol = cv2.solve(A, g, flags=cv2.DECOMP_CHOLESKY)
+            if not ok:
+                break
+            dx = -sol.ravel()
+            R_n = cv2.Rodrigues(dx[:3])[0] @ R
+            t_n = t + B @ dx[3:]
+            t_n /= np.linalg.norm(t_n)
+            cost_n = cost_of(_sampson_reference(R_n, t_n, x0, x1, f))
+            if cost_n < cost:
+                gain = cost - cost_n
+                R, t, cost = R_n, t_n, cost_n
+                lam *= 0.1
+                accepted = True
+                break
+            lam = max(10.0 * lam, 1e-3)
+        if not accepted or gain < 1e-4 * cost:
+            break
+    return R, t
+
+
+@pytest.mark.parametrize("n", [5, 12, 60, 200])
+def test_refine_essential_equals_numpy_loop(n: int) -> None:
+    rng = np.random.default_rng(700 + n)
+    for trial in range(10):
+        T = _pose(rng, 0.05, 0.05)
+        X = _points(rng, n, z_lo=1.0)
+        Xc = X @ T[:3, :3].T + T[:3, 3]
+        x0 = np.c_[X[:, :2] / X[:, 2:], np.ones(n)]
+        x1 = np.c_[Xc[:, :2] / Xc[:, 2:], np.ones(n)] + np.c_[rng.normal(scale=0.5 / 262.0, size=(n, 2)), np.zeros(n)]
+        x1[rng.random(n) < 0.1, :2] += 0.02  # a few outliers for the Huber weights
+        R0 = cv2.Rodrigues(rng.normal(scale=0.01, size=3))[0] @ T[:3, :3]
+        t0 = T[:3, 3] + rng.normal(scale=0.01, size=3)
+        t0 = t0 / np.linalg.norm(t0)
+        R, t = refine_essential(R0, t0, x0, x1, 262.0, huber_px=1.0, iterations=1 + trial % 5)
+        R_ref, t_ref = _refine_essential_reference(R0, t0, x0, x1, 262.0, 1.0, 1 + trial % 5)
+        assert same(R, R_ref, rtol=1e-9)  # after Levenberg-Marquardt steps
+        assert same(t, t_ref, rtol=1e-9)
+
+
+def _interaction(x: np.ndarray, y: np.ndarray, Z: np.ndarray) -> np.ndarray:
+    n = len(x)
+    L = np.zeros((n, 2, 6))
+    L[:, 0, 0], L[:, 0, 2], L[:, 0, 3], L[:, 0, 4], L[:, 0, 5] = -1 / Z, x / Z, x * y, -(1 + x * x), y
+    L[:, 1, 1], L[:, 1, 2], L[:, 1, 3], L[:, 1, 4], L[:, 1, 5] = -1 / Z, y / Z, 1 + y * y, -x * y, -x
+    return L
+
+
+@pytest.mark.parametrize("n", [3, 8, 60, 200])
+def test_flow_hypotheses_match_numpy_scoring(n: int) -> None:
+    rng = np.random.default_rng(600 + n)
+    x, y, Z = rng.uniform(-0.5, 0.5, n), rng.uniform(-0.4, 0.4, n), rng.uniform(1.0, 4.0, n)
+    L = _interaction(x, y, Z)
+    twist = np.array([0.2, -0.1, 0.05, 0.1, -0.2, 0.3])
+    flow = L @ twist + rng.normal(scale=0.002, size=(n, 2))
+    flow[rng.random(n) < 0.2] += rng.normal(scale=0.3, size=2)  # outliers
+    thr2 = 0.01**2
+    idx = rng.integers(0, n, (64, 3))
+    j, count, mask = _kernels.flow_hypotheses(L, flow, idx, 1e-9, thr2)
+    # The numpy formulation it replaced: batched normal equations, residual tensor.
+    A = L[idx].reshape(64, 6, 6)
+    b = flow[idx].reshape(64, 6)
+    At = np.swapaxes(A, 1, 2)
+    sol = np.linalg.solve(At @ A + 1e-9 * np.eye(6), At @ b[:, :, None])[:, :, 0]
+    err = np.einsum("nij,kj->kni", L, sol) - flow[None]
+    inl = np.einsum("kni,kni->kn", err, err) < thr2
+    counts = inl.sum(axis=1)
+    assert j == int(np.argmax(counts)) and count == counts[j]
+    assert np.array_equal(mask, inl[j])
+
+
+def test_solve6_equals_lapack_to_rounding() -> None:
+    rng = np.random.default_rng(9)
+    for _ in range(200):
+        M = rng.normal(size=(6, 6))
+        y = rng.normal(size=6)
+        ref = np.linalg.solve(M, y)
+        x = y.copy()
+        assert _kernels._solve6(M.copy(), x)
+        np.testing.assert_allclose(x, ref, rtol=1e-9, atol=1e-12)
+    assert not _kernels._solve6(np.zeros((6, 6)), np.ones(6))
