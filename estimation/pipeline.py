@@ -1598,14 +1598,22 @@ def run_vo(
     except ValueError as exc:
         names = ", ".join(x.value for x in Method)
         raise EstimationError(f"unknown VO method {method!r}; use one of {names}") from exc
-    if m.needs_depth and sequence.depth_intrinsics is None:
+    has_depth, has_stereo = sequence.depth_intrinsics is not None, bool(sequence.baseline_m)
+    if not has_depth and not has_stereo:
+        # A single camera (a plain video): no method here can give metric motion from it.
         raise EstimationError(
-            f"method {m.value!r} needs depth images but {sequence.name} has none; try 'stereo' or 'flow'"
+            f"{sequence.name} has one camera and neither depth images nor a stereo pair; every VO method "
+            "needs one of them for metric scale (rgbd-* depth, stereo a pair, flow either): record with a "
+            "depth or stereo camera"
         )
-    if m is Method.STEREO and not sequence.baseline_m:
-        raise EstimationError(f"method 'stereo' needs a stereo pair but {sequence.name} has none; try an rgbd method")
-    if m is Method.FLOW and sequence.depth_intrinsics is None and not sequence.baseline_m:
-        raise EstimationError(f"method 'flow' needs depth or stereo but {sequence.name} has neither")
+    if m.needs_depth and not has_depth:
+        raise EstimationError(
+            f"method {m.value!r} needs depth images but {sequence.name} has none; use 'stereo' or 'flow'"
+        )
+    if m is Method.STEREO and not has_stereo:
+        raise EstimationError(
+            f"method 'stereo' needs a stereo pair but {sequence.name} has none; use an rgbd method or 'flow'"
+        )
     prep = FramePreparer(sequence, m, size)
     total = len(range(*slice(start, stop).indices(len(sequence))))
     t0 = time.perf_counter()

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from estimation.pipeline import run_vo
 from flightkit.datasets import (
     CameraIntrinsics,
     Trajectory,
@@ -23,7 +24,7 @@ from flightkit.datasets import (
     write_tum,
 )
 from flightkit.datasets.trajectory import parse_stamp_ns
-from flightkit.errors import DatasetError
+from flightkit.errors import DatasetError, EstimationError
 
 
 def _traj(n: int = 20) -> Trajectory:
@@ -206,6 +207,10 @@ def test_video_with_json_calibration(tmp_path: Path) -> None:
     assert [f.index for f in frames] == [1, 5, 9]
     assert frames[1].stamp_ns == 5_000_000_000 + round(5 * 1e9 / 15)
     assert frames[2].color_bgr is not None and abs(int(frames[2].color_bgr[20, 20, 1]) - 180) < 8
+    # A plain video has no metric scale: every VO method refuses it in one sentence that says so.
+    for method in ("rgbd-pnp", "rgbd-essential", "rgbd-kabsch", "stereo", "flow"):
+        with pytest.raises(EstimationError, match="one camera and neither depth images nor a stereo pair"):
+            run_vo(seq, method)
     calib["width"] = 640
     (tmp_path / "clip.json").write_text(json.dumps(calib))
     with pytest.raises(DatasetError, match="is 64x48 but"):
