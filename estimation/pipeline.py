@@ -242,8 +242,8 @@ class VoOptions:
             refits of the velocity after RANSAC's least-squares refit
             (``estimation.flow.velocity_ransac``, ``robust_iters``): tracks that disagree by
             most of the threshold count less. Per-step error (RPE) 12-19 % lower on the synthetic
-            patterns, 7-Scenes ATE 0.021 -> 0.016 m at 320x240 (docs/estimation.md, "seventh
-            pass, accuracy"); 0: the code before it, bit for bit.
+            patterns, 7-Scenes ATE 0.021 -> 0.016 m at 320x240 (docs/estimation-log.md,
+            "seventh pass, accuracy"); 0: the code before it, bit for bit.
         flow_depth: flow with stereo (no depth image): ``"altitude"`` (one depth for all
             points, ``Z = f B / d`` from row-consistent ORB matches: a camera looking down at
             flat ground) or ``"stereo"`` (each point's own depth by sparse stereo; any scene).
