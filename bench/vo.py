@@ -239,6 +239,10 @@ def main() -> int:
                 on_stereo = label == "stereo" or label.endswith("@stereo")
                 return "baseline-pnp@stereo" if key in SYNTHETIC and on_stereo else "baseline-pnp"
 
+            # Untimed warm-up: the first VO run in a process loads the compiled kernels (~0.4 s,
+            # estimation/_kernels.py), a start-up cost, not a per-frame one.
+            for _label, m, opts in plan:
+                run_vo(seq, m, options=opts, size=size, stop=3)
             timed: dict[str, list[VoResult]] = {label: [] for label, _, _ in plan}
             bases = [] if args.no_baseline else sorted({base_for(label) for label, _, _ in plan} | {"baseline-pnp"})
             base_rounds: dict[str, list[VoResult]] = {b: [] for b in bases}
