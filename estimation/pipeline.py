@@ -215,6 +215,11 @@ class VoOptions:
         min_inliers: fewer inliers -> the estimate is rejected.
         max_speed_m_s, max_rate_rad_s: sanity limits of one step.
         min_depth_m, max_depth_m: accepted depth range (stereo and depth images).
+        init_min_depth_fraction: the RGB-D methods make their first keyframe only once at least
+            this fraction of the depth image lies in that range; until then every frame gets
+            the start pose, flagged ``INIT`` (a camera a few centimetres above the floor before
+            take-off sees nothing in range, and a first keyframe from a sliver of depth carried
+            a ~6 degree error through a whole flight). 0: start at the first frame.
         max_depth_baselines: stereo points farther than this many baselines are not used
             (depth error grows with the square of range; ORB-SLAM calls points within 35-40
             baselines "close"; 60 measured best on KITTI, trading translation for rotation).
@@ -285,6 +290,7 @@ class VoOptions:
     max_rate_rad_s: float = 8.0
     min_depth_m: float = 0.2
     max_depth_m: float = 60.0
+    init_min_depth_fraction: float = 0.5
     min_disparity_px: float = 3.0
     max_depth_baselines: float = 60.0
     refine_with_depth: bool = True
@@ -353,6 +359,10 @@ class VoOptions:
                 f"VoOptions.pnp_prior_gate_px={self.pnp_prior_gate_px}, klt_trust_prior_px="
                 f"{self.klt_trust_prior_px}, pnp_prior_min_fraction={self.pnp_prior_min_fraction}; use "
                 "distances >= 0 (0: off) and a fraction in (0, 1]"
+            )
+        if not 0.0 <= self.init_min_depth_fraction <= 1.0:
+            raise EstimationError(
+                f"VoOptions.init_min_depth_fraction is {self.init_min_depth_fraction}; use a fraction in [0, 1]"
             )
         if not 0 < self.min_depth_m < self.max_depth_m:
             raise EstimationError(
@@ -552,6 +562,7 @@ class VisualOdometry:
         self.orb = DescriptorExtractor("orb", 1000)
         self.rng = np.random.default_rng(self.opts.seed)
         self.index = 0
+        self._waited_frames = 0  # frames an RGB-D method held its start pose for lack of depth
         # Frame-to-frame state
         self.prev_pyr: npt.NDArray[np.uint8] | None = None
         self.prev_stamp_ns = 0
@@ -711,6 +722,28 @@ class VisualOdometry:
         return self._process_keyframe(stamp_ns, gray, right_gray, depth_m)
 
     # ------------------------------------------------------------------ keyframe methods
+    def _waiting_for_depth(self, depth_m: F32 | None) -> bool:
+        """True while an RGB-D method waits for enough depth in range to start (logged once)."""
+        o = self.opts
+        if depth_m is None or not self.method.needs_depth or o.init_min_depth_fraction <= 0.0:
+            return False
+        in_range = float(np.count_nonzero((depth_m >= o.min_depth_m) & (depth_m <= o.max_depth_m))) / depth_m.size
+        if in_range >= o.init_min_depth_fraction:
+            if self._waited_frames:
+                logger.info("VO started after %d frames of waiting for depth in range", self._waited_frames)
+            return False
+        if not self._waited_frames:
+            logger.info(
+                "VO waits for depth: %.0f %% of the image within %.2f-%.0f m, %.0f %% needed to start "
+                "(the pose is held, flagged INIT)",
+                100.0 * in_range,
+                o.min_depth_m,
+                o.max_depth_m,
+                100.0 * o.init_min_depth_fraction,
+            )
+        self._waited_frames += 1
+        return True
+
     def _make_keyframe(
         self,
         gray: npt.NDArray[np.uint8],
@@ -1194,6 +1227,9 @@ class VisualOdometry:
         pyr = gray
         timer.lap("track")
         if self.prev_pyr is None:
+            if self._waiting_for_depth(depth_m):
+                timer.lap("keyframe")
+                return self._emit(stamp_ns, 0, Quality.INIT, False, timer)
             self._make_keyframe(
                 gray,
                 pyr,

@@ -179,3 +179,41 @@ def test_prior_guided_rgbd_pnp_matches_ransac(sequences: dict[str, SimSequence],
     gap = np.linalg.norm(guided.T_world_camera[:, :3, 3] - full.T_world_camera[:, :3, 3], axis=1)
     assert gap.max() < 0.008
     assert not np.any(guided.quality == Quality.PREDICTED)
+
+
+def test_rgbd_vo_waits_for_depth_in_range_before_its_first_keyframe(sequences: dict[str, SimSequence]) -> None:
+    # Before take-off a depth camera a few centimetres above the floor sees almost nothing in
+    # range: the first frames here keep depth only in a band of 20 % of the rows. The VO holds
+    # its start pose (INIT, no keyframe) until half the image is in range, then tracks.
+    from estimation.pipeline import VisualOdometry
+    from flightkit.datasets.trajectory import Trajectory
+
+    seq = _sequence(sequences, "circle")
+    frames = list(seq.frames(0, 60))
+    T0 = frames[0].T_world_camera
+    assert T0 is not None
+    vo = VisualOdometry(
+        "rgbd-pnp", seq.intrinsics, seq.baseline_m, seq.depth_intrinsics, T_world_camera0=T0, options=VoOptions()
+    )
+    n_blind = 6
+    poses = []
+    for i, f in enumerate(frames):
+        depth = f.depth_m
+        assert depth is not None
+        if i < n_blind:
+            depth = depth.copy()
+            depth[int(0.2 * depth.shape[0]) :] = 0.0  # no return below the top band
+        poses.append(vo.process(f.stamp_ns, f.gray, f.right_gray, depth))
+    held = poses[:n_blind]
+    assert all(p.quality is Quality.INIT and not p.keyframe for p in held)
+    assert all(np.array_equal(p.T_world_camera, held[0].T_world_camera) for p in held)
+    assert np.allclose(held[0].T_world_camera, T0.as_matrix(), atol=1e-9)  # the start pose, held
+    assert poses[n_blind].keyframe and poses[n_blind].quality is Quality.INIT  # the first keyframe
+    assert all(p.quality is Quality.GOOD for p in poses[n_blind + 1 :])
+    # From the first keyframe on it tracks: its motion since then matches the truth's.
+    stamps = np.array([f.stamp_ns for f in frames[n_blind:]])
+    est = Trajectory.from_matrices(stamps, np.stack([p.T_world_camera for p in poses[n_blind:]]))
+    gt = Trajectory.from_matrices(stamps, np.stack([f.T_world_camera.as_matrix() for f in frames[n_blind:]]))  # type: ignore[union-attr]
+    assert ape(est, gt, "se3").translation.rmse < 0.005
+    with pytest.raises(Exception, match="init_min_depth_fraction"):
+        VoOptions(init_min_depth_fraction=1.5)
