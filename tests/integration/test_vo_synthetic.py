@@ -183,8 +183,8 @@ def test_prior_guided_rgbd_pnp_matches_ransac(sequences: dict[str, SimSequence],
 
 def test_rgbd_vo_waits_for_depth_in_range_before_its_first_keyframe(sequences: dict[str, SimSequence]) -> None:
     # Before take-off a depth camera a few centimetres above the floor sees almost nothing in
-    # range: the first frames here keep depth only in a band of 20 % of the rows. The VO holds
-    # its start pose (INIT, no keyframe) until half the image is in range, then tracks.
+    # range: the first frames here keep depth only in a band of 20 % of the rows. Asked to, the
+    # VO holds its start pose (INIT, no keyframe) until half the image is in range, then tracks.
     from estimation.pipeline import VisualOdometry
     from flightkit.datasets.trajectory import Trajectory
 
@@ -192,8 +192,9 @@ def test_rgbd_vo_waits_for_depth_in_range_before_its_first_keyframe(sequences: d
     frames = list(seq.frames(0, 60))
     T0 = frames[0].T_world_camera
     assert T0 is not None
+    opts = VoOptions(init_min_depth_fraction=0.5)
     vo = VisualOdometry(
-        "rgbd-pnp", seq.intrinsics, seq.baseline_m, seq.depth_intrinsics, T_world_camera0=T0, options=VoOptions()
+        "rgbd-pnp", seq.intrinsics, seq.baseline_m, seq.depth_intrinsics, T_world_camera0=T0, options=opts
     )
     n_blind = 6
     poses = []
