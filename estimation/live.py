@@ -52,7 +52,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from estimation.pipeline import FramePose, Method, Quality, VisualOdometry, VoOptions
+from estimation.pipeline import FramePose, Method, Quality, VisualOdometry, VoOptions, warm_up
 from flightkit.bus.keys import Keys
 from flightkit.bus.msgs import CameraInfo, Image, PoseStamped
 from flightkit.clock import Clock
@@ -391,6 +391,11 @@ class LiveVo:
         cfg = self.config
         self._loop = asyncio.get_running_loop()
         self._new_estimate = asyncio.Event()
+        # Load (or, once after an install, compile) the VO's kernels now, off the event loop,
+        # rather than on the first live frame while the camera streams on.
+        t0 = time.perf_counter()
+        await asyncio.to_thread(warm_up, self.method)
+        logger.debug("live VO %s: kernels ready in %.2f s", self.method.value, time.perf_counter() - t0)
         try:
             self._subs = [
                 BusSubscriber(self.session, self.keys.camera_info(cfg.color_camera), callback=self._on_info),

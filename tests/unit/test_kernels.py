@@ -342,3 +342,14 @@ def test_solve6_equals_lapack_to_rounding() -> None:
         assert _kernels._solve6(M.copy(), x)
         np.testing.assert_allclose(x, ref, rtol=1e-9, atol=1e-12)
     assert not _kernels._solve6(np.zeros((6, 6)), np.ones(6))
+
+
+@pytest.mark.parametrize("method", ["rgbd-pnp", "rgbd-essential", "rgbd-kabsch", "stereo", "flow"])
+def test_warm_up_runs_each_method_through_its_estimation_path(method: str) -> None:
+    from estimation.pipeline import Quality, warm_up
+
+    poses = warm_up(method)
+    assert [p.quality for p in poses] == [Quality.INIT] + [Quality.GOOD] * 4
+    # The texture moves 2 px a frame at 250 px focal length and ~2 m: 16 mm a frame, 64 mm in all.
+    assert float(np.linalg.norm(poses[-1].T_world_camera[:3, 3])) == pytest.approx(0.064, rel=0.1)
+    assert _kernels.pose_rows.signatures and _kernels.project.signatures  # loaded, ready for live frames
