@@ -66,7 +66,7 @@ from bench._synthetic import METHODS as SYNTHETIC_METHODS  # noqa: E402
 from bench._synthetic import SYNTHETIC, prerendered  # noqa: E402
 from estimation.baseline import run_baseline  # noqa: E402
 from estimation.evaluation import Alignment, ape, lab_errors, rpe  # noqa: E402
-from estimation.pipeline import Method, VoOptions, VoResult, _resize_intrinsics, run_vo  # noqa: E402
+from estimation.pipeline import Method, VoOptions, VoResult, _resize_intrinsics, run_vo, warm_up  # noqa: E402
 from flightkit.datasets.base import Frame  # noqa: E402
 from flightkit.datasets.registry import open_sequence  # noqa: E402
 
@@ -185,6 +185,10 @@ def main() -> int:
     sizes = [tuple(int(v) for v in s.split("x")) for s in args.sizes.split(",")]
     keys = args.only.split(",") if args.only else list(SEQUENCES) + ([] if args.no_synthetic else list(SYNTHETIC))
     rows: list[dict[str, object]] = []
+    # Untimed: the first VO run in a process loads the compiled kernels (~0.4 s,
+    # estimation/_kernels.py), a start-up cost, not a per-frame one.
+    for m in Method:
+        warm_up(m)
     print(f"data: {DATA}; OpenCV {cv2.__version__}, threads {cv2.getNumThreads()}, one CPU")
     hdr = (
         f"{'sequence':13} {'size':8} {'method':16} {'fps':>7} {'cpu fps':>7} {'ATE m':>8} {'RPE m':>8} "
@@ -239,10 +243,6 @@ def main() -> int:
                 on_stereo = label == "stereo" or label.endswith("@stereo")
                 return "baseline-pnp@stereo" if key in SYNTHETIC and on_stereo else "baseline-pnp"
 
-            # Untimed warm-up: the first VO run in a process loads the compiled kernels (~0.4 s,
-            # estimation/_kernels.py), a start-up cost, not a per-frame one.
-            for _label, m, opts in plan:
-                run_vo(seq, m, options=opts, size=size, stop=3)
             timed: dict[str, list[VoResult]] = {label: [] for label, _, _ in plan}
             bases = [] if args.no_baseline else sorted({base_for(label) for label, _, _ in plan} | {"baseline-pnp"})
             base_rounds: dict[str, list[VoResult]] = {b: [] for b in bases}
