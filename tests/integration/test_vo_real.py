@@ -183,5 +183,7 @@ def test_flow_with_per_point_stereo_depth_handles_a_forward_camera() -> None:
     altitude = run_vo(seq, "flow", size=(320, 240), init_from_groundtruth=True)
     ate_pp = ape(per_point.trajectory(), gt).translation.rmse
     ate_alt = ape(altitude.trajectory(), gt).translation.rmse
-    assert ate_pp < 2.5  # measured 1.18 m over 59.9 m (first-order velocity model at 10 Hz)
-    assert ate_alt > 3 * ate_pp  # measured 11.7 m
+    # measured 0.13 m over 59.9 m (1.18 m before the reprojection polish of the first-order
+    # velocity model, which a car at 1.2 m per frame is far beyond)
+    assert ate_pp < 0.4
+    assert ate_alt > 10 * ate_pp  # measured 8.7 m
