@@ -8,9 +8,10 @@ exact: the pose you render from is the pose.
 How it works: one ray per pixel (precomputed in the camera frame with z = 1, so the ray
 parameter *is* the depth), intersected in numpy with the floor plane and with every box
 that can be in view (slab test); each hit gets texture coordinates into one texture atlas
-and a single ``cv2.remap`` samples the atlas bilinearly, so textures do not alias and the
-images carry real, trackable corners. Faces get a fixed shading by their normal so edges
-are visible.
+and the size of the pixel's footprint on the surface, and ``cv2.remap`` samples the atlas's
+mip levels trilinearly (a pixel averages the texels it covers, as a lens and sensor do), so
+distant textures do not alias and the images carry real, trackable corners. Faces get a
+fixed shading by their normal so edges are visible.
 
 Camera frame is OpenCV (x right, y down, z forward); world is ENU (z up).
 """
@@ -32,6 +33,21 @@ _SKY_RGB = np.array([200, 205, 215], dtype=np.uint8)
 _FLOOR_TILE_M = 4.0  # the floor texture repeats every 4 m
 _TEX_FLOOR_PX = 1024
 _TEX_BOX_PX = 512
+_MIP_LEVELS = 7  # level 6: 64 texels per pixel (a floor tile 4 m wide seen 60 m away at 320 px)
+
+
+def _spread(d2: npt.NDArray[np.float32], d_n: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
+    """Square root of a pixel's footprint area on a surface per unit depth and focal length:
+    ``|d| sqrt(|d| / |d . n|)`` for rays ``d`` (z = 1) with squared norm ``d2``."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        norm = np.sqrt(d2)
+        return np.asarray(norm * np.sqrt(norm / np.abs(d_n)), dtype=np.float32)
+
+
+def _mip_level(texels_per_px: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
+    """Mip level (log2 of the texels a pixel spans, 0 when magnified) of footprints."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.nan_to_num(np.maximum(np.log2(texels_per_px), 0.0), nan=0.0, posinf=_MIP_LEVELS - 1.0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -130,6 +146,7 @@ class _Buffers:
     map_u: npt.NDArray[np.float32]
     map_v: npt.NDArray[np.float32]
     shade: npt.NDArray[np.float32]
+    lod: npt.NDArray[np.float32]  # log2 of texels per pixel (mip level), 0 where magnified or sky
 
 
 @dataclass
@@ -149,6 +166,8 @@ class SimCamera:
     depth_max_m: float = 10.0
     _rays_cam: npt.NDArray[np.float64] = field(init=False, repr=False)
     _atlas: npt.NDArray[np.uint8] = field(init=False, repr=False)
+    _mip_atlas: npt.NDArray[np.uint8] = field(init=False, repr=False)
+    _mip_x0: npt.NDArray[np.float32] = field(init=False, repr=False)
     _box_lo: npt.NDArray[np.float64] = field(init=False, repr=False)
     _box_hi: npt.NDArray[np.float64] = field(init=False, repr=False)
 
@@ -164,6 +183,17 @@ class SimCamera:
             for i in range(len(self.scene.boxes))
         ]
         self._atlas = np.ascontiguousarray(np.concatenate(textures, axis=0))
+        # Mip levels, each a Gaussian-filtered half of the one before (cv2.pyrDown: texel j of
+        # level k sits at texel j * 2^k of level 0), packed side by side into one image so that
+        # two remaps (the levels below and above each pixel's) sample them all.
+        mips = [self._atlas]
+        for _ in range(_MIP_LEVELS - 1):
+            mips.append(cv2.pyrDown(mips[-1]))
+        x0 = np.cumsum([0] + [m.shape[1] for m in mips[:-1]])
+        packed = np.zeros((self._atlas.shape[0], int(x0[-1]) + mips[-1].shape[1], 3), np.uint8)
+        for m, x in zip(mips, x0, strict=True):
+            packed[: m.shape[0], x : x + m.shape[1]] = m
+        self._mip_atlas, self._mip_x0 = packed, x0.astype(np.float32)
         self._box_lo = np.array([b.min_xyz_m for b in self.scene.boxes], dtype=np.float64).reshape(-1, 3)
         self._box_hi = np.array([b.max_xyz_m for b in self.scene.boxes], dtype=np.float64).reshape(-1, 3)
 
@@ -190,6 +220,14 @@ class SimCamera:
         map_u = np.full((h, w), -1.0, np.float32)
         map_v = np.full((h, w), -1.0, np.float32)
         shade = np.ones((h, w), np.float32)
+        lod = np.zeros((h, w), np.float32)
+        # A pixel's footprint on a surface at depth t spans t |d| / f metres across the slope and
+        # t |d|^2 / (f |d . n|) along it (d the pixel's ray with z = 1 in the camera, n the unit
+        # normal); the mip level follows their geometric mean, the square root of the area (the
+        # larger one, as plain GPU trilinear filtering takes, blurs surfaces seen at a grazing
+        # angle, the floor ahead, into featureless smears).
+        d2 = dk[0] * dk[0] + dk[1] * dk[1] + dk[2] * dk[2]
+        inv_f = np.float32(1.0 / self.model.fx_px)
         ox, oy, oz = (float(c) for c in origin)
 
         # Floor z = 0 (seen from above) and the four walls of the room (seen from inside).
@@ -218,6 +256,7 @@ class SimCamera:
                 map_u[hit] = np.mod(pu * scale, _TEX_FLOOR_PX - 1)
                 map_v[hit] = row0 + np.mod(pv * scale, _TEX_FLOOR_PX - 1)
                 shade[hit] = face_shade
+                lod[hit] = _mip_level(th * inv_f * _spread(d2[hit], dk[axis][hit]) * np.float32(scale))
 
         # Boxes: slab test restricted to the image rectangle each box projects into.
         K = self.model.K
@@ -255,7 +294,8 @@ class SimCamera:
             tn_all = t_near[hit]
             # The slab entered last is the face hit.
             face_axis = np.where(t1[0][hit] == tn_all, 0, np.where(t1[1][hit] == tn_all, 1, 2))
-            p = origin + tn[:, None] * np.stack([dk[k][sub][hit] for k in range(3)], axis=-1)
+            ray = np.stack([dk[k][sub][hit] for k in range(3)], axis=-1)
+            p = origin + tn[:, None] * ray
             rows = np.arange(tn.size)
             a_axis = np.where(face_axis == 0, 1, 0)
             b_axis = np.where(face_axis == 2, 1, 2)
@@ -265,22 +305,39 @@ class SimCamera:
             vb_m = rel[rows, b_axis]
             scale = _TEX_BOX_PX / 1.5
             t_best[sub][hit] = tn
+            # Box faces have twice the texels per metre along u as along v: their geometric mean.
+            box_density = np.float32(scale * math.sqrt(2.0))
+            d_n = ray[rows, face_axis]
+            lod[sub][hit] = _mip_level(tn * inv_f * _spread(np.einsum("ij,ij->i", ray, ray), d_n) * box_density)
             map_u[sub][hit] = np.mod(ua_m * scale * 2.0, _TEX_FLOOR_PX - 1)
             map_v[sub][hit] = 5 * _TEX_FLOOR_PX + i * _TEX_BOX_PX + np.mod(vb_m * scale, _TEX_BOX_PX - 1)
             shade[sub][hit] = np.array([0.78, 0.9, 1.0], np.float32)[face_axis]
-        return _Buffers(t_best, map_u, map_v, shade)
+        return _Buffers(t_best, map_u, map_v, shade, lod)
 
     def _shade(self, buf: _Buffers) -> npt.NDArray[np.uint8]:
+        """Sample the texture at each pixel's hit, filtered to the pixel's footprint.
+
+        A pixel sees a patch of surface, not a point: where that patch spans several texels
+        (a textured floor a few metres away), sampling one point would alias (moire whose
+        pattern moves at the wrong speed as the camera moves, a bias for every tracker). So
+        the atlas is sampled trilinearly: bilinearly in the two mip levels around the pixel's
+        ``lod`` (log2 texels per pixel), blended between them, as a GPU does.
+        """
         h, w = self.model.height_px, self.model.width_px
-        img = cv2.remap(
-            self._atlas,
-            buf.map_u.reshape(h, w),
-            buf.map_v.reshape(h, w),
-            interpolation=cv2.INTER_LINEAR,
-            borderMode=cv2.BORDER_CONSTANT,
-            borderValue=tuple(int(c) for c in _SKY_RGB),
-        )
-        shaded = img.astype(np.float32) * buf.shade.reshape(h, w, 1)
+        sky = tuple(int(c) for c in _SKY_RGB)
+        lod = np.clip(buf.lod, 0.0, _MIP_LEVELS - 1.0)
+        hit = buf.map_u >= 0.0
+
+        def sample(level: npt.NDArray[np.int32]) -> npt.NDArray[np.uint8]:
+            scale = np.ldexp(np.float32(1.0), -level).astype(np.float32)
+            u = np.where(hit, buf.map_u * scale + self._mip_x0[level], np.float32(-1.0))
+            v = np.where(hit, buf.map_v * scale, np.float32(-1.0))
+            return cv2.remap(self._mip_atlas, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=sky)
+
+        below_k = np.minimum(lod.astype(np.int32), _MIP_LEVELS - 2)
+        frac = np.ascontiguousarray(lod - below_k, dtype=np.float32)
+        img = cv2.blendLinear(sample(below_k), sample(below_k + 1), 1.0 - frac, frac)
+        shaded = img * buf.shade.reshape(h, w, 1)
         return np.clip(shaded, 0, 255).astype(np.uint8)
 
     def render(self, T_world_camera: Transform) -> RenderedFrame:
@@ -293,9 +350,7 @@ class SimCamera:
         depth_mm[valid] = np.round(depth_m[valid] * 1000.0).astype(np.uint16)
         return RenderedFrame(self._shade(buf), depth_mm, T_world_camera)
 
-    def render_stereo(
-        self, T_world_left: Transform
-    ) -> tuple[npt.NDArray[np.uint8], npt.NDArray[np.uint8]]:
+    def render_stereo(self, T_world_left: Transform) -> tuple[npt.NDArray[np.uint8], npt.NDArray[np.uint8]]:
         """Rectified grayscale pair; the right camera sits ``baseline_m`` along the left's x."""
         T_left_right = Transform(translation=np.array([self.baseline_m, 0.0, 0.0]))
         left = cv2.cvtColor(self._shade(self._cast(T_world_left)), cv2.COLOR_RGB2GRAY)
