@@ -34,6 +34,11 @@ _FLOOR_TILE_M = 4.0  # the floor texture repeats every 4 m
 _TEX_FLOOR_PX = 1024
 _TEX_BOX_PX = 512
 _MIP_LEVELS = 7  # level 6: 64 texels per pixel (a floor tile 4 m wide seen 60 m away at 320 px)
+_LOD_BIAS = 1.5
+"""Mip levels finer than log2(texels per pixel): a pyrDown level k is a Gaussian of ~0.6 * 2^k
+texels, twice the spread of the box that a pixel of 2^k texels averages. Measured against
+5x5 supersampling averaged down (floor views 20-50 deg below the horizon, 320x240): mean
+error 1.2-1.6 grey levels at 1.5, 3.2-6.2 at 0 (blurred), 2.3-3.6 point-sampled (aliased)."""
 
 
 def _spread(d2: npt.NDArray[np.float32], d_n: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
@@ -47,7 +52,7 @@ def _spread(d2: npt.NDArray[np.float32], d_n: npt.NDArray[np.float32]) -> npt.ND
 def _mip_level(texels_per_px: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
     """Mip level (log2 of the texels a pixel spans, 0 when magnified) of footprints."""
     with np.errstate(divide="ignore", invalid="ignore"):
-        return np.nan_to_num(np.maximum(np.log2(texels_per_px), 0.0), nan=0.0, posinf=_MIP_LEVELS - 1.0)
+        return np.nan_to_num(np.maximum(np.log2(texels_per_px) - _LOD_BIAS, 0.0), nan=0.0, posinf=_MIP_LEVELS - 1.0)
 
 
 @dataclass(frozen=True, slots=True)
