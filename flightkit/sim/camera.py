@@ -50,7 +50,7 @@ def _spread(d2: npt.NDArray[np.float32], d_n: npt.NDArray[np.float32]) -> npt.ND
 
 
 def _mip_level(texels_per_px: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
-    """Mip level (log2 of the texels a pixel spans, 0 when magnified) of footprints."""
+    """Mip level of footprints: log2 of the texels a pixel spans less ``_LOD_BIAS``, at least 0."""
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.nan_to_num(np.maximum(np.log2(texels_per_px) - _LOD_BIAS, 0.0), nan=0.0, posinf=_MIP_LEVELS - 1.0)
 
@@ -151,7 +151,7 @@ class _Buffers:
     map_u: npt.NDArray[np.float32]
     map_v: npt.NDArray[np.float32]
     shade: npt.NDArray[np.float32]
-    lod: npt.NDArray[np.float32]  # log2 of texels per pixel (mip level), 0 where magnified or sky
+    lod: npt.NDArray[np.float32]  # mip level: log2(texels per pixel) - _LOD_BIAS, 0 at least and for sky
 
 
 @dataclass
@@ -170,7 +170,6 @@ class SimCamera:
     baseline_m: float = 0.05
     depth_max_m: float = 10.0
     _rays_cam: npt.NDArray[np.float64] = field(init=False, repr=False)
-    _atlas: npt.NDArray[np.uint8] = field(init=False, repr=False)
     _mip_atlas: npt.NDArray[np.uint8] = field(init=False, repr=False)
     _mip_x0: npt.NDArray[np.float32] = field(init=False, repr=False)
     _box_lo: npt.NDArray[np.float64] = field(init=False, repr=False)
@@ -187,15 +186,15 @@ class SimCamera:
             cv2.resize(make_texture(_TEX_BOX_PX, self.scene.seed + 1 + i), (_TEX_FLOOR_PX, _TEX_BOX_PX))
             for i in range(len(self.scene.boxes))
         ]
-        self._atlas = np.ascontiguousarray(np.concatenate(textures, axis=0))
+        atlas = np.ascontiguousarray(np.concatenate(textures, axis=0))
         # Mip levels, each a Gaussian-filtered half of the one before (cv2.pyrDown: texel j of
         # level k sits at texel j * 2^k of level 0), packed side by side into one image so that
         # two remaps (the levels below and above each pixel's) sample them all.
-        mips = [self._atlas]
+        mips = [atlas]
         for _ in range(_MIP_LEVELS - 1):
             mips.append(cv2.pyrDown(mips[-1]))
         x0 = np.cumsum([0] + [m.shape[1] for m in mips[:-1]])
-        packed = np.zeros((self._atlas.shape[0], int(x0[-1]) + mips[-1].shape[1], 3), np.uint8)
+        packed = np.zeros((atlas.shape[0], int(x0[-1]) + mips[-1].shape[1], 3), np.uint8)
         for m, x in zip(mips, x0, strict=True):
             packed[: m.shape[0], x : x + m.shape[1]] = m
         self._mip_atlas, self._mip_x0 = packed, x0.astype(np.float32)
@@ -326,7 +325,7 @@ class SimCamera:
         (a textured floor a few metres away), sampling one point would alias (moire whose
         pattern moves at the wrong speed as the camera moves, a bias for every tracker). So
         the atlas is sampled trilinearly: bilinearly in the two mip levels around the pixel's
-        ``lod`` (log2 texels per pixel), blended between them, as a GPU does.
+        ``lod`` (:func:`_mip_level`), blended between them, as a GPU does.
         """
         h, w = self.model.height_px, self.model.width_px
         sky = tuple(int(c) for c in _SKY_RGB)
