@@ -1507,7 +1507,8 @@ class VisualOdometry:
             back_levels=self.klt_back_levels,
             max_iters=o.klt_iters,
         )
-        idx = np.flatnonzero(ok & np.isfinite(ref.Z))
+        tracked = np.flatnonzero(ok)
+        idx = tracked[np.isfinite(ref.Z[tracked])]  # tracked with a depth: the velocity's points
         timer.lap("track")
         quality = Quality.PREDICTED
         n_inl = 0
@@ -1533,19 +1534,26 @@ class VisualOdometry:
         if quality is not Quality.PREDICTED:
             self.T_step, self.step_dt_s = invert(T_world_cur) @ self.T_world_cam, dt_s
         self.T_world_cam = T_world_cur
-        step_px = px[idx] - ref.trk[idx]
-        moved = px[idx] - ref.pts[idx]
+        step_px = px[tracked] - ref.trk[tracked]
+        moved = px[tracked] - ref.pts[tracked]
         renew = (
             quality is Quality.PREDICTED
-            or len(idx) < o.max_features // 2
+            or len(tracked) < o.max_features // 2
             or float(np.median(np.einsum("ij,ij->i", moved, moved))) >= o.flow_ref_px * o.flow_ref_px
         )
         if renew:
-            self._flow_new_ref(stamp_ns, gray, right_gray, depth_m, px[idx], step_px)
+            self._flow_new_ref(stamp_ns, gray, right_gray, depth_m, px[tracked], step_px)
             timer.lap("keyframe")
         else:
             self.flow_ref = _FlowRef(
-                ref.gray, ref.stamp_ns, ref.T_world_cam, ref.pts[idx], ref.xn[idx], ref.Z[idx], px[idx], step_px
+                ref.gray,
+                ref.stamp_ns,
+                ref.T_world_cam,
+                ref.pts[tracked],
+                ref.xn[tracked],
+                ref.Z[tracked],
+                px[tracked],
+                step_px,
             )
         self.prev_stamp_ns = stamp_ns
         return self._emit(stamp_ns, n_inl, quality, renew, timer)
