@@ -252,9 +252,9 @@ class VoOptions:
             the velocity is then the mean over the interval since the reference. LK errs by
             ~0.01 px per call with the same sign from frame to frame (measured on the synthetic
             rectangle: +1 % of a 0.8 px step, every step), so tracking from the previous frame
-            (0) integrates that bias into a drift of 1-3 % of the path. Measured ATE, 0 -> 15:
-            7-Scenes 14.3 -> 8.9 mm (320x240), 7.9 -> 6.3 mm (640x480); synthetic patterns
-            (docs/estimation-log.md, "ninth pass").
+            (0) integrates that bias into a drift of 1-3 % of the path. Measured ATE, bench runs
+            before and after: 7-Scenes 15.5 -> 7.9 mm (320x240), 8.8 -> 8.7 mm (640x480);
+            synthetic patterns in docs/estimation-log.md, "ninth pass".
         flow_polish: flow: polish the motion since the reference on the reprojection of the
             reference points (``estimation.flow.polish_motion``, exact for any motion) instead
             of integrating the first-order velocity model alone, whose error over several
@@ -1607,9 +1607,9 @@ class VisualOdometry:
 
 _FLOW_POLISH_HUBER_PX = 0.25
 """Huber threshold of flow's reprojection polish: a few times the LK noise (~0.05 px on the
-synthetic patterns). Measured against 1 px with flow_ref_px 15: ATE lower on 5 of the 6
-synthetic runs (e.g. the rectangle at 320x240 4.3 -> 3.8 mm), per-step error 5-15 % lower
-on all six (docs/estimation-log.md, "ninth pass")."""
+synthetic patterns). Measured against 1 px with flow_ref_px 15 (point-sampling renderer): ATE
+lower on 5 of the 6 synthetic runs (e.g. the rectangle at 320x240 4.3 -> 3.8 mm), per-step
+error 5-15 % lower on all six (docs/estimation-log.md, "ninth pass")."""
 
 
 @dataclass(frozen=True, slots=True, eq=False)
