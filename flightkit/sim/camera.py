@@ -51,8 +51,8 @@ def _spread(d2: npt.NDArray[np.float32], d_n: npt.NDArray[np.float32]) -> npt.ND
 
 def _mip_level(texels_per_px: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
     """Mip level of footprints: log2 of the texels a pixel spans less ``_LOD_BIAS``, at least 0."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.nan_to_num(np.maximum(np.log2(texels_per_px) - _LOD_BIAS, 0.0), nan=0.0, posinf=_MIP_LEVELS - 1.0)
+    with np.errstate(divide="ignore"):
+        return np.clip(np.log2(texels_per_px) - np.float32(_LOD_BIAS), 0.0, _MIP_LEVELS - 1.0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -329,18 +329,24 @@ class SimCamera:
         """
         h, w = self.model.height_px, self.model.width_px
         sky = tuple(int(c) for c in _SKY_RGB)
-        lod = np.clip(buf.lod, 0.0, _MIP_LEVELS - 1.0)
-        hit = buf.map_u >= 0.0
-
-        def sample(level: npt.NDArray[np.int32]) -> npt.NDArray[np.uint8]:
-            scale = np.ldexp(np.float32(1.0), -level).astype(np.float32)
-            u = np.where(hit, buf.map_u * scale + self._mip_x0[level], np.float32(-1.0))
-            v = np.where(hit, buf.map_v * scale, np.float32(-1.0))
-            return cv2.remap(self._mip_atlas, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=sky)
-
-        below_k = np.minimum(lod.astype(np.int32), _MIP_LEVELS - 2)
-        frac = np.ascontiguousarray(lod - below_k, dtype=np.float32)
-        img = cv2.blendLinear(sample(below_k), sample(below_k + 1), 1.0 - frac, frac)
+        sky_px = buf.map_u < 0.0
+        below_k = np.minimum(buf.lod.astype(np.int32), _MIP_LEVELS - 2)
+        frac = np.ascontiguousarray(buf.lod - below_k, dtype=np.float32)
+        # Texel coordinates in the packed atlas: level k's are level 0's / 2^k, shifted to its column.
+        scale = np.ldexp(np.float32(1.0), -below_k).astype(np.float32)
+        u_below = buf.map_u * scale + self._mip_x0[below_k]
+        u_above = buf.map_u * (scale * np.float32(0.5)) + self._mip_x0[below_k + 1]
+        v_below = buf.map_v * scale
+        v_above = v_below * np.float32(0.5)
+        for coord in (u_below, u_above, v_below, v_above):
+            np.putmask(coord, sky_px, np.float32(-1.0))  # outside the atlas: the sky colour
+        below = cv2.remap(
+            self._mip_atlas, u_below, v_below, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=sky
+        )
+        above = cv2.remap(
+            self._mip_atlas, u_above, v_above, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=sky
+        )
+        img = cv2.blendLinear(below, above, 1.0 - frac, frac)
         shaded = img * buf.shade.reshape(h, w, 1)
         return np.clip(shaded, 0, 255).astype(np.uint8)
 
