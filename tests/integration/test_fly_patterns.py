@@ -145,9 +145,13 @@ def test_rectangle_flies_its_corners_with_turns_in_place(autopilot: str, tmp_pat
     # the yaw turns only while standing at a corner (speed ~0 while the yaw rate is large), except
     # while the yaw catches up after the control loop missed its ticks (see settled())
     ok = settled(r["t_s"])
-    assert ok.mean() > 0.8, "too few undisturbed control cycles to judge the corners"
     turning = np.abs(r["sp_yaw_rate_rad_s"]) > 0.3
-    assert (turning & ok).any()
+    # Judge at least half of the turning cycles (520-580 of them; a quiet machine leaves all
+    # undisturbed, a loaded CI host has left 78 % of all cycles).
+    assert np.count_nonzero(turning & ok) > 0.5 * np.count_nonzero(turning) > 0, (
+        f"too few undisturbed turning cycles to judge the corners: {np.count_nonzero(turning & ok)} of "
+        f"{np.count_nonzero(turning)} ({np.count_nonzero(~ok)} of {len(ok)} cycles within 1 s of a missed tick)"
+    )
     speed = np.hypot(r["ref_vx_m_s"], r["ref_vy_m_s"])
     assert np.all(speed[turning & ok] < 0.02)
 
