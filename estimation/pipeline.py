@@ -140,13 +140,16 @@ class VoOptions:
         klt_iters: LK iterations per pyramid level at most (each also stops on a 0.03 px step).
         stereo_win_px: LK window of the left-right (disparity) search (0: the tracking window).
         fb_max_px: forward-backward tolerance of tracks.
-        klt_trust_prior_px: rgbd-pnp with a motion prior (from the second step on): a track
-            that ends within this distance of its predicted position (the keyframe point
+        klt_trust_prior_px: the RGB-D methods with a motion prior (from the second step on): a
+            track that ends within this distance of its predicted position (the keyframe point
             projected with the constant-velocity motion) skips the backward check; only the
-            others are tracked back (0: all are). The prior is evidence of its own, and
-            ``pnp_prior_*`` below drops what does not fit the pose. 7-Scenes at 320x240: the
-            backward pass ran on 2-25 % of the tracks. Not applied to stereo (KITTI not
-            re-measured) nor to rgbd-essential / rgbd-kabsch (their ATE moved both ways).
+            others are tracked back (0: all are). The prior is evidence of its own, and the
+            prior-guided fits (``pnp_prior_*``, ``essential_prior_*``, ``kabsch_prior_*``) drop
+            what does not fit the pose. 7-Scenes at 320x240: the backward pass ran on 2-25 % of
+            the tracks. rgbd-essential and rgbd-kabsch since 2026-11-22 (seventh session):
+            1.05-1.24x the frames per CPU second on the synthetic patterns, per-step errors
+            within 3 %, ATE lower on 11 of 16 runs (docs/estimation-log.md, tenth pass). Not
+            applied to stereo (KITTI not re-measured).
         pnp_method: ``"iterative"``, ``"epnp"`` or ``"sqpnp"``: the fit on all inliers.
         pnp_kernel: the solver of PnP RANSAC's minimal samples: None (``pnp_method`` itself,
             OpenCV's default), ``"ap3p"`` or ``"p3p"`` (4 points; RANSAC alone ~2.5x cheaper,
@@ -183,9 +186,6 @@ class VoOptions:
             RANSAC (0: always RANSAC). Taken on every step but the first on 7-Scenes and the
             synthetic patterns, with trajectories identical bit for bit (RANSAC's re-selection
             ends on the same inliers); 1.14-1.23x the frames per CPU second (2026-11-22).
-        kabsch_trust_prior_px: rgbd-kabsch as ``klt_trust_prior_px`` for rgbd-pnp (0: every
-            track gets the backward check). Off: 0.5, 1 and 2 px moved the ATE both ways
-            (7-Scenes 0.0060 -> 0.0061 m, circle 0.0046 -> 0.0047 / 0.0049 m; 2026-11-22).
         essential_threshold_px: epipolar RANSAC threshold.
         essential_min_parallax_px: below this median image motion since the keyframe the
             essential matrix is ill-conditioned; ``rgbd-essential`` then solves the step by
@@ -293,7 +293,6 @@ class VoOptions:
     kabsch_first_batch: int = 8
     kabsch_prior_gate: float = 2.0
     kabsch_prior_min_fraction: float = 0.9
-    kabsch_trust_prior_px: float = 0.0
     essential_threshold_px: float = 1.0
     essential_min_parallax_px: float = 3.0
     essential_cheirality: str = "depth"
@@ -352,11 +351,10 @@ class VoOptions:
                 f"essential_prior_iterations={self.essential_prior_iterations}; use a distance >= 0 "
                 "(0: off), a fraction in (0, 1] and at least 1 iteration"
             )
-        if self.kabsch_prior_gate < 0 or self.kabsch_trust_prior_px < 0 or not 0 < self.kabsch_prior_min_fraction <= 1:
+        if self.kabsch_prior_gate < 0 or not 0 < self.kabsch_prior_min_fraction <= 1:
             raise EstimationError(
                 f"VoOptions.kabsch_prior_gate={self.kabsch_prior_gate}, kabsch_prior_min_fraction="
-                f"{self.kabsch_prior_min_fraction}, kabsch_trust_prior_px={self.kabsch_trust_prior_px}; "
-                "use a gate and a distance >= 0 (0: off) and a fraction in (0, 1]"
+                f"{self.kabsch_prior_min_fraction}; use a gate >= 0 (0: off) and a fraction in (0, 1]"
             )
         if self.kabsch_first_batch < 1:
             raise EstimationError(
@@ -1270,12 +1268,10 @@ class VisualOdometry:
         T_pred_cur_kf = T_pred_cur_prev @ self.T_prev_kf
         guess_px, vis = self._project(T_pred_cur_kf, self.kf_X)
         guess = np.where(vis[:, None], guess_px, self.trk_px)
-        # rgbd-pnp with a motion prior: tracks that land near their predicted position skip
-        # the backward check (the prior-guided PnP below rejects what does not fit).
-        prior = self.method is Method.RGBD_PNP and self.T_step is not None
+        # The RGB-D methods with a motion prior: tracks that land near their predicted position
+        # skip the backward check (the prior-guided fit below rejects what does not fit).
+        prior = self.method.needs_depth and self.T_step is not None
         trust_px = np.where(vis, o.klt_trust_prior_px, 0.0) if prior else 0.0
-        if self.method is Method.RGBD_KABSCH and self.T_step is not None and o.kabsch_trust_prior_px > 0:
-            trust_px = np.where(vis, o.kabsch_trust_prior_px, 0.0)
         px, ok = track_klt(
             self.prev_pyr,
             pyr,

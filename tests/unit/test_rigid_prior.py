@@ -67,7 +67,7 @@ def test_rigid_from_prior_declines_when_the_prediction_does_not_explain_the_pair
 
 
 def test_vo_options_reject_bad_kabsch_prior_values() -> None:
-    VoOptions(kabsch_prior_gate=0.0, kabsch_trust_prior_px=1.0)  # off / on are fine
-    for bad in ({"kabsch_prior_gate": -1.0}, {"kabsch_prior_min_fraction": 0.0}, {"kabsch_trust_prior_px": -0.5}):
+    VoOptions(kabsch_prior_gate=0.0)  # off is fine
+    for bad in ({"kabsch_prior_gate": -1.0}, {"kabsch_prior_min_fraction": 0.0}):
         with pytest.raises(EstimationError, match="kabsch_prior_gate"):
             VoOptions(**bad)
