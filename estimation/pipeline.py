@@ -146,10 +146,10 @@ class VoOptions:
             others are tracked back (0: all are). The prior is evidence of its own, and the
             prior-guided fits (``pnp_prior_*``, ``essential_prior_*``, ``kabsch_prior_*``) drop
             what does not fit the pose. 7-Scenes at 320x240: the backward pass ran on 2-25 % of
-            the tracks. rgbd-essential and rgbd-kabsch since 2026-11-22 (seventh session):
-            1.05-1.24x the frames per CPU second on the synthetic patterns, per-step errors
-            within 3 %, ATE lower on 11 of 16 runs (docs/estimation-log.md, tenth pass). Not
-            applied to stereo (KITTI not re-measured).
+            the tracks. rgbd-essential and rgbd-kabsch since 2026-11-22 (tenth pass of
+            docs/estimation-log.md): 0.94-1.24x (median 1.13x) the frames per CPU second on
+            the synthetic patterns and 7-Scenes, per-step errors within 3 %, ATE lower on 12
+            of 16 runs. Not applied to stereo (KITTI not re-measured).
         pnp_method: ``"iterative"``, ``"epnp"`` or ``"sqpnp"``: the fit on all inliers.
         pnp_kernel: the solver of PnP RANSAC's minimal samples: None (``pnp_method`` itself,
             OpenCV's default), ``"ap3p"`` or ``"p3p"`` (4 points; RANSAC alone ~2.5x cheaper,
