@@ -90,6 +90,42 @@ def test_orb_row_matching_gives_the_disparity() -> None:
     assert np.all(np.abs(fl.pts_px[il, 1] - fr.pts_px[ir, 1]) <= 1.0)
 
 
+def _masked_bf_reference(fl, fr, max_dy_px, min_d, max_d, ratio):  # type: ignore[no-untyped-def]
+    """The same matching by OpenCV's brute-force matcher with a full N x M row mask (the
+    independent oracle): k=2, ratio test, lone candidates kept, ambiguous right features out."""
+    dy = np.abs(fl.pts_px[:, None, 1] - fr.pts_px[None, :, 1])
+    disp = fl.pts_px[:, None, 0] - fr.pts_px[None, :, 0]
+    mask = ((dy <= max_dy_px) & (disp >= min_d) & (disp <= max_d)).astype(np.uint8)
+    pairs = []
+    for knn in cv2.BFMatcher(fl.norm).knnMatch(fl.descriptors, fr.descriptors, k=2, mask=mask):
+        if len(knn) == 1 or (len(knn) == 2 and knn[0].distance < ratio * knn[1].distance):
+            pairs.append((knn[0].queryIdx, knn[0].trainIdx))
+    right_ids = [r for _, r in pairs]
+    return [(q, r) for q, r in pairs if right_ids.count(r) == 1]
+
+
+@pytest.mark.parametrize("kind", ["orb", "sift"])
+def test_row_matching_equals_the_masked_brute_force_matcher(kind: str) -> None:
+    # Real features of a stereo pair, plus features moved onto a few shared rows (many
+    # candidates per band, ties in y, lone candidates and right features claimed twice).
+    left, right = pair(12)
+    ex = DescriptorExtractor(kind, 400)
+    fl, fr = ex.extract(left), ex.extract(right)
+    rng = np.random.default_rng(3)
+    fl.pts_px[::3, 1] = rng.choice([50.0, 50.5, 51.75], size=len(fl.pts_px[::3]))
+    fr.pts_px[::2, 1] = rng.choice([50.0, 51.0, 52.0], size=len(fr.pts_px[::2]))
+    for max_dy, min_d, max_d, ratio in [(1.5, 0.5, 256.0, 0.8), (1.0, 2.0, 40.0, 0.9), (0.0, -500.0, 500.0, 1.0)]:
+        il, ir, disp = match_stereo_rows(fl, fr, max_dy, min_d, max_d, ratio)
+        expected = _masked_bf_reference(fl, fr, max_dy, min_d, max_d, ratio)
+        assert len(expected) > 20
+        assert list(zip(il.tolist(), ir.tolist(), strict=True)) == expected
+        np.testing.assert_array_equal(disp, (fl.pts_px[il, 0] - fr.pts_px[ir, 0]).astype(np.float32))
+    # No candidate anywhere: empty, typed results.
+    far = type(fr)(fr.pts_px + np.float32(1000.0), fr.descriptors, fr.norm)
+    il, ir, disp = match_stereo_rows(fl, far)
+    assert len(il) == len(ir) == len(disp) == 0 and disp.dtype == np.float32
+
+
 def test_descriptor_matching_uses_the_right_norm() -> None:
     left, right = pair(8)
     orb, sift = DescriptorExtractor("orb", 300), DescriptorExtractor("sift", 300)
