@@ -79,8 +79,8 @@ def match_stereo_rows(
     Candidates must lie within ``max_dy_px`` rows and have a disparity ``xl - xr`` in
     ``[min_disparity_px, max_disparity_px]``; the ratio test is applied among those only (a
     feature with one candidate keeps it). Only the candidates in each left feature's row band
-    are compared (the right features sorted by row), not every pair: for ORB-1000 at 320x240,
-    ~10 candidates each instead of ~800, 0.3 instead of 9 ms (no N x M arrays to allocate).
+    are compared (the right features sorted by row), not every pair: for ORB-1000 at 320x240
+    on EuRoC, ~27 candidates each instead of ~780, 2.0 instead of 9.3 ms (no N x M arrays).
 
     Returns:
         ``(il, ir, disparity_px)``, ascending in ``il``; disparities are float32.

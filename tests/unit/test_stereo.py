@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from estimation.features import DescriptorExtractor, GridDetector
+from estimation.features import DescriptorExtractor, Features, GridDetector
 from estimation.matching import match_descriptors, match_stereo_rows
 from estimation.stereo import DenseDisparity, StereoRig, sparse_disparity, triangulate
 from flightkit.errors import EstimationError
@@ -90,7 +90,9 @@ def test_orb_row_matching_gives_the_disparity() -> None:
     assert np.all(np.abs(fl.pts_px[il, 1] - fr.pts_px[ir, 1]) <= 1.0)
 
 
-def _masked_bf_reference(fl, fr, max_dy_px, min_d, max_d, ratio):  # type: ignore[no-untyped-def]
+def _masked_bf_reference(
+    fl: Features, fr: Features, max_dy_px: float, min_d: float, max_d: float, ratio: float
+) -> list[tuple[int, int]]:
     """The same matching by OpenCV's brute-force matcher with a full N x M row mask (the
     independent oracle): k=2, ratio test, lone candidates kept, ambiguous right features out."""
     dy = np.abs(fl.pts_px[:, None, 1] - fr.pts_px[None, :, 1])
@@ -121,7 +123,7 @@ def test_row_matching_equals_the_masked_brute_force_matcher(kind: str) -> None:
         assert list(zip(il.tolist(), ir.tolist(), strict=True)) == expected
         np.testing.assert_array_equal(disp, (fl.pts_px[il, 0] - fr.pts_px[ir, 0]).astype(np.float32))
     # No candidate anywhere: empty, typed results.
-    far = type(fr)(fr.pts_px + np.float32(1000.0), fr.descriptors, fr.norm)
+    far = Features(fr.pts_px + np.float32(1000.0), fr.descriptors, fr.norm)
     il, ir, disp = match_stereo_rows(fl, far)
     assert len(il) == len(ir) == len(disp) == 0 and disp.dtype == np.float32
 
