@@ -32,7 +32,6 @@ import math
 import cv2
 import numpy as np
 import numpy.typing as npt
-from scipy.spatial.transform import Rotation
 
 from estimation import _kernels
 from estimation.features import DescriptorExtractor
@@ -172,6 +171,7 @@ def velocity_ransac(
     rng: np.random.Generator | None = None,
     batch: int = 128,
     robust_iters: int = 0,
+    first_batch: int | None = None,
 ) -> tuple[F64, npt.NDArray[np.bool_]]:
     """Camera twist from normalised point motion with a vectorised 3-point RANSAC.
 
@@ -186,6 +186,8 @@ def velocity_ransac(
             refits (Cauchy weights ``1 / (1 + (e / s)^2)`` with ``s = threshold / 2``): tracks
             whose flow disagrees by a sizeable fraction of the threshold count less than those
             that agree, instead of all inliers counting fully (0: off).
+        first_batch: hypotheses of the first batch (None: ``batch``); with mostly inliers a
+            few draws reach the confidence, and a small first batch saves scoring the rest.
 
     Returns:
         ``(twist, inliers)``: twist (6,) = linear velocity (m/s) then angular velocity
@@ -207,7 +209,7 @@ def velocity_ransac(
     A_all = np.ascontiguousarray(L.reshape(n, 2, 6))
     flow_c = np.ascontiguousarray(flow)
     while drawn < needed:
-        k = min(batch, needed - drawn)
+        k = min(batch if drawn or first_batch is None else max(1, first_batch), needed - drawn)
         idx = np.stack([rng.choice(n, 3, replace=False) for _ in range(k)]) if n < 8 else rng.integers(0, n, (k, 3))
         # Each hypothesis solved (normal equations, 1e-9 ridge) and scored against every
         # track in one compiled loop; the batch's first best.
@@ -216,33 +218,12 @@ def velocity_ransac(
             best_count, best_mask = int(count), inl
             needed = ransac_iterations(best_count / n, 3, confidence, max_iters)
         drawn += k
-    mask = best_mask
-    twist = np.zeros(6)
-    # (With reweighted refits to follow, one least-squares refit starts them: they re-select.)
-    for _ in range(1 if robust_iters > 0 else 2):
-        if np.count_nonzero(mask) < 3:
-            return np.zeros(6), np.zeros(n, dtype=bool)
-        twist = velocity_lstsq(L[mask], flow[mask])
-        err = np.einsum("nij,j->ni", L, twist) - flow
-        mask = np.einsum("ni,ni->n", err, err) < thr2
-    if robust_iters > 0:
-        # Reweighted refits by the 6x6 normal equations, outliers at weight 0 (no indexing).
-        A = L.reshape(-1, 6)
-        b = flow.reshape(-1)
-        s2 = 0.25 * thr2
-        for _ in range(robust_iters):
-            e2 = np.einsum("ni,ni->n", err, err)
-            w = np.where(e2 < thr2, 1.0 / (1.0 + e2 / s2), 0.0)
-            if np.count_nonzero(w) < 3:
-                break
-            A_w = A * np.repeat(w, 2)[:, None]
-            try:
-                twist = np.linalg.solve(A_w.T @ A, A_w.T @ b)
-            except np.linalg.LinAlgError:
-                break
-            err = (A @ twist).reshape(n, 2) - flow
-        mask = np.einsum("ni,ni->n", err, err) < thr2
-    return twist, mask
+    # Least-squares refit on the inliers, then reweighted refits (or a second plain one),
+    # in one compiled call.
+    ok, twist, e2 = _kernels.flow_refit(A_all, flow_c, best_mask, thr2, int(robust_iters))
+    if not ok:
+        return np.zeros(6), np.zeros(n, dtype=bool)
+    return twist, e2 < thr2
 
 
 def integrate_velocity(twist: F64, dt_s: float) -> F64:
@@ -251,9 +232,9 @@ def integrate_velocity(twist: F64, dt_s: float) -> F64:
     The twist's linear part is applied along the mid-interval attitude (second order).
     """
     v, w = twist[:3], twist[3:]
-    R = Rotation.from_rotvec(w * dt_s)
-    R_half = Rotation.from_rotvec(0.5 * w * dt_s)
-    return make_T(R.as_matrix(), R_half.apply(v * dt_s))
+    R = cv2.Rodrigues(w * dt_s)[0]
+    R_half = cv2.Rodrigues(0.5 * w * dt_s)[0]
+    return make_T(R, R_half @ (v * dt_s))
 
 
 def polish_motion(T_ref_cur: F64, xn_ref: F64, z_ref_m: F64, xn_cur: F64, huber: float) -> F64:

@@ -539,49 +539,43 @@ def refine_pose(
         K: (3, 3) intrinsics.
         disparity_px: (N,) current disparities (NaN where unknown), or None.
         fb_px_m: ``fx * baseline`` of the disparities (pixel metres).
-        huber_px: Huber threshold of all residuals.
+        huber_px: Huber threshold of all residuals (> 0; a huge one is plain least squares).
         iterations: Gauss-Newton steps (stops early on convergence).
 
     Returns:
-        The refined (4, 4) pose. Returns immediately (rows by a compiled loop, estimation._kernels).
+        The refined (4, 4) pose (a new array).
     """
     X = np.ascontiguousarray(points_ref, dtype=np.float64).reshape(-1, 3)
     uv = np.ascontiguousarray(pts_px, dtype=np.float64).reshape(-1, 2)
     Km = np.asarray(K, dtype=np.float64)
     fx, fy, cx, cy = float(Km[0, 0]), float(Km[1, 1]), float(Km[0, 2]), float(Km[1, 2])
     n = len(X)
+    if not huber_px > 0:
+        raise EstimationError(f"refine_pose huber_px is {huber_px}; use a positive threshold (1 px is typical)")
     if n < 4:
         return T_cur_ref
-    d = None if disparity_px is None else np.asarray(disparity_px, dtype=np.float64).reshape(-1)
-    has_d = np.zeros(n, dtype=bool) if d is None or fb_px_m <= 0 else np.isfinite(d)
-    T = np.array(T_cur_ref, dtype=np.float64)
-    di = np.flatnonzero(has_d)
-    nd = len(di)
-    dd = d[di] if d is not None and nd else np.zeros(0)
-    # Stacked rows: u (n), v (n), disparity (nd). The residuals, the Jacobian of a left
-    # perturbation [rho, phi] and its Huber-weighted copy come from one compiled loop (the
-    # arithmetic of the numpy expressions it replaced, bit for bit); the normal equations,
-    # their solution and the step stay with numpy/OpenCV (compiling them too cost ~25 s of
-    # JIT on a cold cache for no measurable gain).
-    m = 2 * n + nd
-    J = np.empty((m, 6))
-    Jw = np.empty((m, 6))
-    r = np.empty(m)
-    for _ in range(iterations):
-        if not _kernels.pose_rows(X, T, uv, di, dd, fx, fy, cx, cy, float(fb_px_m), float(huber_px), J, Jw, r):
-            break  # a point at or behind the camera
-        H = Jw.T @ J
-        g = Jw.T @ r
-        try:
-            xi = -np.linalg.solve(H, g)
-        except np.linalg.LinAlgError:
-            break
-        dT = _EYE4.copy()
-        dT[:3, :3] = cv2.Rodrigues(xi[3:])[0]
-        dT[:3, 3] = xi[:3]
-        T = dT @ T
-        if float(xi @ xi) < _GN_STOP:
-            break
+    if disparity_px is None or fb_px_m <= 0:
+        disp = np.full(n, np.nan)
+    else:
+        disp = np.ascontiguousarray(disparity_px, dtype=np.float64).reshape(-1)
+    # Per step: reprojection rows u, v and a disparity row where one is measured, their
+    # Jacobian in a left perturbation [rho, phi], Huber weights, the normal equations, the
+    # 6x6 solve and the update, all in one compiled call (estimation._kernels).
+    T: F64 = _kernels.pose_gauss_newton(
+        X,
+        np.ascontiguousarray(T_cur_ref, dtype=np.float64),
+        uv,
+        disp,
+        fx,
+        fy,
+        cx,
+        cy,
+        float(fb_px_m),
+        float(huber_px),
+        int(iterations),
+        _GN_STOP,
+        6,
+    )
     return T
 
 

@@ -62,7 +62,8 @@ def test_transform_equals_numpy_matmul(n: int) -> None:
 def _pose_rows_reference(
     X: np.ndarray, T: np.ndarray, uv: np.ndarray, di: np.ndarray, dd: np.ndarray, fb: float, huber: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """One step's rows of refine_pose, as its numpy body built them."""
+    """One Gauss-Newton step's rows (Jacobian, weighted Jacobian, residuals) of refine_pose, as
+    its numpy body built them before the loop was compiled."""
     n = len(X)
     Xc = X @ T[:3, :3].T + T[:3, 3]
     x, y, z = Xc[:, 0], Xc[:, 1], Xc[:, 2]
@@ -79,47 +80,25 @@ def _pose_rows_reference(
     Jd = np.stack([zd, zd, -k, -k * yd, k * xd, zd], axis=1)
     r = np.concatenate([FX * xz + CX - uv[:, 0], FY * yz + CY - uv[:, 1], fb * izd - dd])
     J = np.concatenate([Ju, Jv, Jd])
-    a = np.abs(r)
-    if huber > 0:
-        w = huber / np.maximum(a, huber)
-    else:
-        w = np.where(a <= huber, 1.0, huber / np.maximum(a, 1e-12))
+    w = huber / np.maximum(np.abs(r), huber)
     return J, J * w[:, None], r
 
 
-@pytest.mark.parametrize("n", SIZES)
-@pytest.mark.parametrize("huber", [1.0, 0.0])
-def test_pose_rows_equal_numpy(n: int, huber: float) -> None:
-    rng = np.random.default_rng(100 + n)
-    for _ in range(10):
-        X = _points(rng, n)
-        T = _pose(rng, 0.05, 0.05)
-        uv = _pixels(rng, X, T)
-        di = np.flatnonzero(rng.random(n) < 0.7)
-        dd = 26.0 / X[di, 2] + rng.normal(scale=0.5, size=len(di))
-        m = 2 * n + len(di)
-        J, Jw, r = np.empty((m, 6)), np.empty((m, 6)), np.empty(m)
-        ok = _kernels.pose_rows(X, T, uv, di, dd, FX, FY, CX, CY, 26.0, huber, J, Jw, r)
-        ref = _pose_rows_reference(X, T, uv, di, dd, 26.0, huber)
-        assert ref is not None and ok
-        assert same(J, ref[0])
-        assert same(Jw, ref[1])
-        assert same(r, ref[2])
-
-
-def test_pose_rows_refuse_a_point_behind_the_camera() -> None:
+def test_refine_pose_takes_no_step_with_a_point_behind_the_camera() -> None:
     rng = np.random.default_rng(7)
     X = _points(rng, 20)
     X[5, 2] = -1.0
-    T = np.eye(4)
-    J, Jw, r = np.full((40, 6), 7.0), np.full((40, 6), 7.0), np.full(40, 7.0)
-    di = np.zeros(0, np.intp)
-    assert not _kernels.pose_rows(X, T, _pixels(rng, X, T), di, np.zeros(0), FX, FY, CX, CY, 0.0, 1.0, J, Jw, r)
-    assert (J == 7.0).all() and (r == 7.0).all()  # untouched
+    T0 = _pose(rng, 0.01, 0.01)
+    K = np.array([[FX, 0.0, CX], [0.0, FY, CY], [0.0, 0.0, 1.0]])
+    T = refine_pose(T0, X, _pixels(rng, X, np.eye(4)), K)
+    assert np.array_equal(T, T0) and T is not T0
+    X[5, 2] = 1.0  # the same problem with the point in front moves the pose
+    assert not np.array_equal(refine_pose(T0, X, _pixels(rng, X, np.eye(4)), K), T0)
 
 
 @pytest.mark.parametrize("n", [4, 5, 16, 200, 457])
-def test_refine_pose_equals_numpy_loop(n: int) -> None:
+@pytest.mark.parametrize("huber", [1.0, 1e9])
+def test_refine_pose_equals_numpy_loop(n: int, huber: float) -> None:
     rng = np.random.default_rng(150 + n)
     for trial in range(10):
         X = _points(rng, n)
@@ -132,7 +111,7 @@ def test_refine_pose_equals_numpy_loop(n: int) -> None:
         # The loop as numpy wrote it: normal equations by BLAS, LAPACK solve, cv2.Rodrigues.
         T_ref = T0.copy()
         for _ in range(4):
-            rows = _pose_rows_reference(X, T_ref, uv, di, dd, 26.0, 1.0)
+            rows = _pose_rows_reference(X, T_ref, uv, di, dd, 26.0, huber)
             assert rows is not None
             J, Jw, r = rows
             xi = -np.linalg.solve(Jw.T @ J, Jw.T @ r)
@@ -145,7 +124,7 @@ def test_refine_pose_equals_numpy_loop(n: int) -> None:
         K = np.array([[FX, 0.0, CX], [0.0, FY, CY], [0.0, 0.0, 1.0]])
         d = np.full(n, np.nan)
         d[di] = dd
-        T = refine_pose(T0, X, uv, K, d if len(di) else None, 26.0, huber_px=1.0, iterations=4)
+        T = refine_pose(T0, X, uv, K, d if len(di) else None, 26.0, huber_px=huber, iterations=4)
         assert same(T, T_ref, rtol=1e-9)  # after Gauss-Newton steps
         if n >= 200:  # enough points that the 2 px noise averages out: it moved towards the truth
             assert np.abs(T[:3, 3] - T_true[:3, 3]).max() < np.abs(T0[:3, 3] - T_true[:3, 3]).max()
@@ -332,6 +311,53 @@ def test_flow_hypotheses_match_numpy_scoring(n: int) -> None:
     assert np.array_equal(mask, inl[j])
 
 
+def _flow_refit_reference(
+    L: np.ndarray, flow: np.ndarray, mask: np.ndarray, thr2: float, robust_iters: int
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """velocity_ransac's refits as its numpy body wrote them (lstsq, then weighted solves)."""
+    n = len(L)
+    err = np.zeros((n, 2))
+    for _ in range(1 if robust_iters > 0 else 2):
+        if np.count_nonzero(mask) < 3:
+            return None
+        twist = np.linalg.lstsq(L[mask].reshape(-1, 6), flow[mask].reshape(-1), rcond=None)[0]
+        err = np.einsum("nij,j->ni", L, twist) - flow
+        mask = np.einsum("ni,ni->n", err, err) < thr2
+    A, b, s2 = L.reshape(-1, 6), flow.reshape(-1), 0.25 * thr2
+    for _ in range(robust_iters):
+        e2 = np.einsum("ni,ni->n", err, err)
+        w = np.where(e2 < thr2, 1.0 / (1.0 + e2 / s2), 0.0)
+        if np.count_nonzero(w) < 3:
+            break
+        A_w = A * np.repeat(w, 2)[:, None]
+        twist = np.linalg.solve(A_w.T @ A, A_w.T @ b)
+        err = (A @ twist).reshape(n, 2) - flow
+    return twist, np.einsum("ni,ni->n", err, err)
+
+
+@pytest.mark.parametrize("n", [3, 4, 8, 60, 200])
+@pytest.mark.parametrize("robust_iters", [0, 3])
+def test_flow_refit_equals_numpy_refits(n: int, robust_iters: int) -> None:
+    rng = np.random.default_rng(700 + n)
+    for trial in range(10):
+        x, y, Z = rng.uniform(-0.5, 0.5, n), rng.uniform(-0.4, 0.4, n), rng.uniform(1.0, 4.0, n)
+        L = _interaction(x, y, Z)
+        flow = L @ rng.normal(scale=0.2, size=6) + rng.normal(scale=0.004, size=(n, 2))
+        flow[rng.random(n) < 0.2] += rng.normal(scale=0.3, size=2)  # outliers
+        mask = rng.random(n) < (0.9 if trial % 3 else 0.3)  # a RANSAC answer, some of them too small
+        thr2 = 0.01**2
+        ref = _flow_refit_reference(L, flow, mask.copy(), thr2, robust_iters)
+        ok, twist, e2 = _kernels.flow_refit(L, flow, mask, thr2, robust_iters)
+        if ref is None:
+            assert not ok and not twist.any()
+            continue
+        assert ok
+        # normal equations here, an SVD (lstsq) there: equal to ~1e-13 on these well-posed fits
+        np.testing.assert_allclose(twist, ref[0], rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(e2, ref[1], rtol=1e-6, atol=1e-15)
+        assert np.array_equal(e2 < thr2, ref[1] < thr2)
+
+
 def test_solve6_equals_lapack_to_rounding() -> None:
     rng = np.random.default_rng(9)
     for _ in range(200):
@@ -352,4 +378,4 @@ def test_warm_up_runs_each_method_through_its_estimation_path(method: str) -> No
     assert [p.quality for p in poses] == [Quality.INIT] + [Quality.GOOD] * 4
     # The texture moves 2 px a frame at 250 px focal length and ~2 m: 16 mm a frame, 64 mm in all.
     assert float(np.linalg.norm(poses[-1].T_world_camera[:3, 3])) == pytest.approx(0.064, rel=0.1)
-    assert _kernels.pose_rows.signatures and _kernels.project.signatures  # loaded, ready for live frames
+    assert _kernels.pose_gauss_newton.signatures and _kernels.project.signatures  # loaded, ready for live frames
