@@ -171,7 +171,6 @@ def velocity_ransac(
     rng: np.random.Generator | None = None,
     batch: int = 128,
     robust_iters: int = 0,
-    first_batch: int | None = None,
 ) -> tuple[F64, npt.NDArray[np.bool_]]:
     """Camera twist from normalised point motion with a vectorised 3-point RANSAC.
 
@@ -186,8 +185,6 @@ def velocity_ransac(
             refits (Cauchy weights ``1 / (1 + (e / s)^2)`` with ``s = threshold / 2``): tracks
             whose flow disagrees by a sizeable fraction of the threshold count less than those
             that agree, instead of all inliers counting fully (0: off).
-        first_batch: hypotheses of the first batch (None: ``batch``); with mostly inliers a
-            few draws reach the confidence, and a small first batch saves scoring the rest.
 
     Returns:
         ``(twist, inliers)``: twist (6,) = linear velocity (m/s) then angular velocity
@@ -209,7 +206,7 @@ def velocity_ransac(
     A_all = np.ascontiguousarray(L.reshape(n, 2, 6))
     flow_c = np.ascontiguousarray(flow)
     while drawn < needed:
-        k = min(batch if drawn or first_batch is None else max(1, first_batch), needed - drawn)
+        k = min(batch, needed - drawn)
         idx = np.stack([rng.choice(n, 3, replace=False) for _ in range(k)]) if n < 8 else rng.integers(0, n, (k, 3))
         # Each hypothesis solved (normal equations, 1e-9 ridge) and scored against every
         # track in one compiled loop; the batch's first best.

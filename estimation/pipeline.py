@@ -265,9 +265,6 @@ class VoOptions:
             most of the threshold count less. Per-step error (RPE) 12-19 % lower on the synthetic
             patterns, 7-Scenes ATE 0.021 -> 0.016 m at 320x240 (docs/estimation-log.md,
             "seventh pass, accuracy"); 0: two plain least-squares refits.
-        flow_first_batch: flow: hypotheses in the velocity RANSAC's first batch (then 128 per
-            batch), as ``kabsch_first_batch``: with 90 % inliers 6 draws reach the 0.999
-            confidence, and 128 were scored every frame.
         flow_depth: flow with stereo (no depth image): ``"altitude"`` (one depth for all
             points, ``Z = f B / d`` from row-consistent ORB matches: a camera looking down at
             flat ground) or ``"stereo"`` (each point's own depth by sparse stereo; any scene).
@@ -320,7 +317,6 @@ class VoOptions:
     ba_window: int = 0
     flow_threshold_px: float = 1.0
     flow_robust_iters: int = 3
-    flow_first_batch: int = 16
     flow_depth: str = "altitude"
     flow_ref_px: float = 15.0
     flow_polish: bool = True
@@ -360,10 +356,9 @@ class VoOptions:
                 f"VoOptions.kabsch_prior_gate={self.kabsch_prior_gate}, kabsch_prior_min_fraction="
                 f"{self.kabsch_prior_min_fraction}; use a gate >= 0 (0: off) and a fraction in (0, 1]"
             )
-        if self.kabsch_first_batch < 1 or self.flow_first_batch < 1:
+        if self.kabsch_first_batch < 1:
             raise EstimationError(
-                f"VoOptions.kabsch_first_batch is {self.kabsch_first_batch} and flow_first_batch "
-                f"{self.flow_first_batch}; use at least 1 for both (8 and 16 are typical)"
+                f"VoOptions.kabsch_first_batch is {self.kabsch_first_batch}; use at least 1 (8 is typical)"
             )
         if self.max_features < 20:
             raise EstimationError(f"VoOptions.max_features is {self.max_features}; use at least 20 (300 is typical)")
@@ -1525,7 +1520,6 @@ class VisualOdometry:
                 thr,
                 rng=self.rng,
                 robust_iters=o.flow_robust_iters,
-                first_batch=o.flow_first_batch,
             )
             if np.count_nonzero(inl) >= o.min_inliers:
                 T_ref_cur = integrate_velocity(twist, dt_ref_s)

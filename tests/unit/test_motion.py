@@ -378,8 +378,6 @@ def test_vo_options_reject_bad_values() -> None:
         VoOptions(pnp_kernel="epnp")
     with pytest.raises(EstimationError, match="kabsch_first_batch"):
         VoOptions(kabsch_first_batch=0)
-    with pytest.raises(EstimationError, match="flow_first_batch 0"):
-        VoOptions(flow_first_batch=0)
     with pytest.raises(EstimationError, match="essential_cheirality"):
         VoOptions(essential_cheirality="triangulate")
     with pytest.raises(EstimationError, match="essential_prior_iterations=0"):
