@@ -1513,13 +1513,7 @@ class VisualOdometry:
             x0, x1 = ref.xn[idx], self._normalised(px[idx])
             thr = o.flow_threshold_px / self.intr.fx / dt_ref_s
             twist, inl = velocity_ransac(
-                x0,
-                x1,
-                ref.Z[idx],
-                dt_ref_s,
-                thr,
-                rng=self.rng,
-                robust_iters=o.flow_robust_iters,
+                x0, x1, ref.Z[idx], dt_ref_s, thr, rng=self.rng, robust_iters=o.flow_robust_iters
             )
             if np.count_nonzero(inl) >= o.min_inliers:
                 T_ref_cur = integrate_velocity(twist, dt_ref_s)
