@@ -543,7 +543,7 @@ def refine_pose(
         iterations: Gauss-Newton steps (stops early on convergence).
 
     Returns:
-        The refined (4, 4) pose (a new array).
+        The refined (4, 4) pose: a new array (``T_cur_ref`` itself with fewer than 4 points).
     """
     X = np.ascontiguousarray(points_ref, dtype=np.float64).reshape(-1, 3)
     uv = np.ascontiguousarray(pts_px, dtype=np.float64).reshape(-1, 2)
@@ -552,12 +552,16 @@ def refine_pose(
     n = len(X)
     if not huber_px > 0:
         raise EstimationError(f"refine_pose huber_px is {huber_px}; use a positive threshold (1 px is typical)")
-    if n < 4:
-        return T_cur_ref
     if disparity_px is None or fb_px_m <= 0:
         disp = np.full(n, np.nan)
     else:
         disp = np.ascontiguousarray(disparity_px, dtype=np.float64).reshape(-1)
+    if len(uv) != n or len(disp) != n:
+        raise EstimationError(
+            f"refine_pose got {n} points, {len(uv)} pixels and {len(disp)} disparities; give one of each per point"
+        )
+    if n < 4:
+        return T_cur_ref
     # Per step: reprojection rows u, v and a disparity row where one is measured, their
     # Jacobian in a left perturbation [rho, phi], Huber weights, the normal equations, the
     # 6x6 solve and the update, all in one compiled call (estimation._kernels).

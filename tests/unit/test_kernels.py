@@ -17,6 +17,7 @@ from scipy.spatial.transform import Rotation
 
 from estimation import _kernels
 from estimation.motion import refine_pose
+from flightkit.errors import EstimationError
 
 SIZES = [1, 2, 3, 4, 5, 7, 16, 33, 200, 457]
 
@@ -94,6 +95,19 @@ def test_refine_pose_takes_no_step_with_a_point_behind_the_camera() -> None:
     assert np.array_equal(T, T0) and T is not T0
     X[5, 2] = 1.0  # the same problem with the point in front moves the pose
     assert not np.array_equal(refine_pose(T0, X, _pixels(rng, X, np.eye(4)), K), T0)
+
+
+def test_refine_pose_refuses_inputs_the_compiled_loop_cannot_take() -> None:
+    rng = np.random.default_rng(8)
+    X = _points(rng, 10)
+    uv = _pixels(rng, X, np.eye(4))
+    K = np.array([[FX, 0.0, CX], [0.0, FY, CY], [0.0, 0.0, 1.0]])
+    with pytest.raises(EstimationError, match="huber_px is 0"):
+        refine_pose(np.eye(4), X, uv, K, huber_px=0.0)
+    with pytest.raises(EstimationError, match="10 points, 9 pixels"):
+        refine_pose(np.eye(4), X, uv[:9], K)
+    with pytest.raises(EstimationError, match="and 11 disparities"):
+        refine_pose(np.eye(4), X, uv, K, np.ones(11), 26.0)
 
 
 @pytest.mark.parametrize("n", [4, 5, 16, 200, 457])
