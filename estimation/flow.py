@@ -14,8 +14,8 @@ Velocity
              [   0, -1/Z, y/Z, 1 + y*y,       -x*y, -x]]
 
     Three points give six equations for the six unknowns; :func:`velocity_ransac` solves
-    a whole batch of 3-point samples at once (batched normal equations), scores every
-    hypothesis against every point in one numpy pass, and refits on the inliers.
+    a whole batch of 3-point samples at once and scores every hypothesis against every point in
+    one compiled pass, then refits on the inliers (least squares, then Cauchy-reweighted).
     :func:`integrate_velocity` turns (v, w, dt) into the relative pose, and
     :func:`polish_motion` makes it exact (the interaction matrix is a first-order model).
 
