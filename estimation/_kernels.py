@@ -17,7 +17,9 @@ to OpenBLAS's blocked order, so it agrees with the numpy loop to ~1e-12 relative
 bit for bit (the trajectories move in the last digits; the polish became 5x cheaper).
 
 Compiled once and cached on disk next to this module (``__pycache__``); the first import in
-a fresh environment compiles them (~8.5 s of CPU once; docs/estimation-log.md, eighth pass).
+a fresh environment compiles them (~10 s of CPU once: `warm_up` of all five methods took
+11.8 s with a cold cache and 1.8 s with a warm one, imports included; docs/estimation-log.md,
+eighth and eleventh passes).
 """
 
 from __future__ import annotations
@@ -146,10 +148,10 @@ def pose_gauss_newton(
     ``fb / z - disp[i]``; their Jacobian rows in a left perturbation ``[rho, phi]``, Huber
     weights (:func:`_huber_weight`); the weighted normal equations summed point by point,
     the 6x6 solve (:func:`_solve6`), the left update ``T <- exp(xi) T`` (Rodrigues'
-    rotation, translation ``xi[:3]``); stops when
-    ``xi . xi < stop``, or before a step when a point is at or behind ``z = 1e-6`` or the
-    system is singular. ``dof`` is 6 (an argument, so that LLVM does not unroll the loops).
-    Returns the refined (4, 4) pose (a copy of ``T0`` when no step was taken).
+    rotation, translation ``xi[:3]``); stops when ``xi . xi < stop``, or before a step when a
+    point is at or behind ``z = 1e-6`` or the system is singular. ``dof`` is 6 (an argument,
+    so that LLVM does not unroll the loops). Returns the refined (4, 4) pose (a copy of ``T0``
+    when no step was taken).
 
     The arithmetic of the numpy loop it replaced (rows, ``Jw.T @ J`` by BLAS, LAPACK's solve,
     ``cv2.Rodrigues``) up to the order of the sums: the tests compare the two at 1e-9. One
