@@ -114,6 +114,8 @@ def median(a: npt.NDArray[np.floating]) -> float:
 
 _EYE4 = np.eye(4)
 _EYE4.flags.writeable = False  # copied, never written (np.eye costs 5x a copy)
+_EYE3 = np.eye(3)
+_EYE3.flags.writeable = False
 
 
 def make_T(R: npt.ArrayLike, t: npt.ArrayLike) -> F64:
@@ -562,12 +564,18 @@ def refine_pose(
         )
     if n < 4:
         return T_cur_ref
+    # The start's rotation projected onto SO(3) (OpenCV's Rodrigues takes the nearest
+    # rotation): a start made by chaining earlier estimates drifts off it, the steps below
+    # multiply onto it and would keep that drift, and it compounds frame after frame.
+    T0 = np.array(T_cur_ref, dtype=np.float64)
+    if np.abs(T0[:3, :3] @ T0[:3, :3].T - _EYE3).max() > 1e-12:
+        T0[:3, :3] = cv2.Rodrigues(cv2.Rodrigues(T0[:3, :3])[0])[0]
     # Per step: reprojection rows u, v and a disparity row where one is measured, their
     # Jacobian in a left perturbation [rho, phi], Huber weights, the normal equations, the
     # 6x6 solve and the update, all in one compiled call (estimation._kernels).
     T: F64 = _kernels.pose_gauss_newton(
         X,
-        np.ascontiguousarray(T_cur_ref, dtype=np.float64),
+        T0,
         uv,
         disp,
         fx,

@@ -933,15 +933,15 @@ class VisualOdometry:
                 if np.count_nonzero(agree) < max(o.min_inliers, 0.5 * len(px_cur)):
                     m = Motion(guess, np.zeros(len(px_cur), dtype=bool), False)
                 else:
-                    # Levenberg-Marquardt on the reprojection of those points from the 5-point
-                    # motion (as PnP's final fit), inliers re-selected, before the polish below.
-                    # Needed after the prior-guided path too: at 1-5 cm baselines the epipolar
-                    # geometry pins the translation direction only to a few degrees, and the
-                    # depth polish alone (4 Huber steps) kept that error (ATE 0.015-0.34 m).
-                    rvec = cv2.Rodrigues(m.T_cur_ref[:3, :3])[0]
-                    tvec = m.T_cur_ref[:3, 3].reshape(3, 1).copy()
-                    rvec, tvec = cv2.solvePnPRefineLM(X_kf[agree], und_cur[agree], self.K, None, rvec, tvec)
-                    T_lm = make_T(cv2.Rodrigues(rvec)[0], tvec.ravel())
+                    # Least squares on the reprojection of those points from the 5-point motion
+                    # (as PnP's final fit; Gauss-Newton, converged), inliers re-selected, before
+                    # the polish below. Needed after the prior-guided path too: at 1-5 cm
+                    # baselines the epipolar geometry pins the translation direction only to a
+                    # few degrees, and the depth polish alone (4 Huber steps) kept that error
+                    # (ATE 0.015-0.34 m).
+                    T_lm = refine_pose(
+                        m.T_cur_ref, X_kf[agree], und_cur[agree], self.K, huber_px=_LEAST_SQUARES_PX, iterations=20
+                    )
                     mask = agree & (self._reproj_err2(T_lm, X_kf, und_cur) < o.reproj_px**2)
                     m = (
                         Motion(T_lm, mask, True)
@@ -1606,6 +1606,9 @@ _FLOW_POLISH_HUBER_PX = 0.25
 synthetic patterns). Measured against 1 px with flow_ref_px 15 (point-sampling renderer): ATE
 lower on 5 of the 6 synthetic runs (e.g. the rectangle at 320x240 4.3 -> 3.8 mm), per-step
 error 5-15 % lower on all six (docs/estimation-log.md, "ninth pass")."""
+
+_LEAST_SQUARES_PX = 1e9
+"""A Huber threshold no reprojection residual reaches: plain least squares."""
 
 
 @dataclass(frozen=True, slots=True, eq=False)

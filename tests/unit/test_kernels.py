@@ -97,6 +97,24 @@ def test_refine_pose_takes_no_step_with_a_point_behind_the_camera() -> None:
     assert not np.array_equal(refine_pose(T0, X, _pixels(rng, X, np.eye(4)), K), T0)
 
 
+def test_refine_pose_starts_from_the_nearest_rotation() -> None:
+    """A start whose rotation drifted off SO(3) (chained estimates) is projected back first; the
+    steps multiply onto it, so without that the drift would stay in the result and compound."""
+    rng = np.random.default_rng(9)
+    X = _points(rng, 60)
+    T_true = _pose(rng, 0.05, 0.05)
+    uv = _pixels(rng, X, T_true)
+    K = np.array([[FX, 0.0, CX], [0.0, FY, CY], [0.0, 0.0, 1.0]])
+    T_drifted = T_true.copy()
+    T_drifted[:3, :3] = T_true[:3, :3] @ np.diag([1.004, 0.998, 1.001])
+    T = refine_pose(T_drifted, X, uv, K, huber_px=1e9, iterations=20)
+    R = T[:3, :3]
+    assert np.abs(R @ R.T - np.eye(3)).max() < 1e-12 and np.linalg.det(R) > 0
+    T_projected = T_drifted.copy()
+    T_projected[:3, :3] = cv2.Rodrigues(cv2.Rodrigues(T_drifted[:3, :3])[0])[0]
+    assert same(T, refine_pose(T_projected, X, uv, K, huber_px=1e9, iterations=20), rtol=1e-9)
+
+
 def test_refine_pose_refuses_inputs_the_compiled_loop_cannot_take() -> None:
     rng = np.random.default_rng(8)
     X = _points(rng, 10)
