@@ -535,7 +535,9 @@ def refine_pose(
     Huber-weighted (IRLS), analytic Jacobian, a left perturbation ``T <- exp(xi) T``.
 
     Args:
-        T_cur_ref: (4, 4) initial pose (e.g. from PnP RANSAC), inliers only below.
+        T_cur_ref: (4, 4) initial pose (e.g. from PnP RANSAC), inliers only below. A rotation
+            that drifted off SO(3) (a start chained from earlier estimates) is replaced by the
+            nearest rotation first.
         points_ref: (N, 3) reference-frame points.
         pts_px: (N, 2) current pixels.
         K: (3, 3) intrinsics.
