@@ -72,6 +72,12 @@ __all__ = ["FlightRunner", "Status", "fly_plan", "open_lab_mocap", "pattern_in_f
 
 logger = logging.getLogger(__name__)
 
+# ArduCopter leaves the ground only on its own take-off command, and climbs at its own rate
+# (WPNAV_SPEED_UP, 2.5 m/s by default: above the supervisor's 2 m/s limit on a tall take-off).
+# So it lifts the vehicle this high above its start, and our controller climbs the rest at the
+# plan's rate, as on PX4.
+_ARDUPILOT_LIFTOFF_M = 0.3
+
 _OUTCOME = {
     Action.ABORT: "landed_early",
     Action.LAND: "landed_early",
@@ -670,18 +676,28 @@ class FlightRunner:
         pos, yaw = self.current_pose()
         self.airborne = True
         if self.autopilot is Autopilot.ARDUPILOT:
-            # ArduCopter takes off only on its own command, and a velocity setpoint would cancel the
-            # climb: pause the stream, command the take-off, watch (no setpoints) until near the height.
+            # A velocity setpoint would cancel ArduCopter's own climb: pause the stream, command the
+            # lift-off, watch (no setpoints) until near its height, then climb the rest ourselves.
+            lift_m = max(0.2, min(height_m - pos[2], _ARDUPILOT_LIFTOFF_M))
+            lifted_z_m = pos[2] + lift_m - 0.05
+            rate_hz = max(self.settings.rate_hz, 20.0)
             await self.link.stop_setpoint_stream()
-            await self.link.takeoff(max(0.2, height_m - pos[2]))
-            await self._track(
-                _Climb(pos, yaw, 0.0),
-                "takeoff",
-                send=False,
-                timeout_s=60.0,
-                until=lambda _t, p: p[2] >= height_m - 0.1,
-            )
-            await self.link.start_setpoint_stream(max(self.settings.rate_hz, 20.0))
+            try:
+                await self.link.takeoff(lift_m)
+                await self._track(
+                    _Climb(pos, yaw, 0.0),
+                    "takeoff",
+                    send=False,
+                    timeout_s=60.0,
+                    until=lambda _t, p: p[2] >= lifted_z_m,
+                )
+            except BaseException:
+                # whatever reacts (a fault's hold and land, a cancelled flight's landing) streams
+                # setpoints: the stream must run again first
+                with contextlib.suppress(LinkError):
+                    await self.link.start_setpoint_stream(rate_hz)
+                raise
+            await self.link.start_setpoint_stream(rate_hz)
             pos = self.current_pose()[0]
         else:
             await self._climb_until(pos, yaw, pos[2] + 0.08, climb)

@@ -31,6 +31,7 @@ from flightkit.config import Autopilot, LabConfig
 from flightkit.errors import LinkTimeout
 from flightkit.frames import Transform
 from flightkit.sim.autopilot import AutopilotOptions, SimAutopilot
+from flightkit.sim.autopilot.server import MAX_TICK_S
 from flightkit.sim.dynamics import DynamicsParams, DynamicsState, QuadDynamics
 from flightkit.sim.personality import Personality, personality_for
 
@@ -176,11 +177,14 @@ class SimLab:
         """Ground-truth body pose in the world at clock time ``now_s`` (default: now).
 
         The physics runs in ticks; between ticks the pose is extrapolated with the current
-        velocity, so a 120 Hz mocap stream sees smooth motion at any sim speed.
+        velocity, so a 120 Hz mocap stream sees smooth motion at any sim speed. The
+        extrapolation stops where the next tick's step does (``MAX_TICK_S``): after a stall of
+        the physics thread the vehicle seems to pause, never to jump (with a shorter cap the
+        pose froze early and the tick's catch-up then moved it by more than one sample's worth).
         """
         state, stamp = self.autopilot.truth_stamped()
         now = self.clock.monotonic_s() if now_s is None else now_s
-        return state.T_world_body(max(0.0, min(0.1, now - stamp)))
+        return state.T_world_body(max(0.0, min(MAX_TICK_S, now - stamp)))
 
     # ------------------------------------------------------------------ faults
 

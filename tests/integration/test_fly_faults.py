@@ -252,6 +252,27 @@ def test_geofence_breach_holds_then_lands_inside(tmp_path: Path, autopilot: str)
     assert x_final < 0.5  # stopped before the fence (the reference is checked ahead), landed inside
 
 
+def test_fault_during_ardupilots_own_liftoff_holds_then_lands(tmp_path: Path) -> None:
+    """ArduCopter climbs on its own take-off command while our setpoint stream is paused; a fault
+    then (here: overspeed, the lift-off's ~0.45 m/s above a 0.25 m/s limit) must still be met
+    with the hold and the landing, which stream setpoints (it once raised 'the setpoint stream is
+    not running' instead, leaving the vehicle climbing to the lift-off height on its own)."""
+    plan = circle_plan(max_speed_m_s=0.25)
+    run = asyncio.run(fly_with_fault(tmp_path, lambda r, _s: None, plan=plan, autopilot="ardupilot"))
+    s = run.summary
+    assert s is not None
+    assert s.outcome == "landed_early", s.format_table()
+    assert kinds(s)[0] == "overspeed", s.format_table()
+    names = [p.name for p in s.phases]
+    # the landing phase has no cycles when the hold is already below its end height (0.12 m)
+    assert names[:2] == ["takeoff", "abort_hold"] and names[2:] in ([], ["land"]), s.format_table()
+    assert s.phase("abort_hold").duration_s == pytest.approx(plan.safety.abort_hold_s, abs=0.3)
+    log = read_flight_log(s.log_path or "")
+    held = np.asarray(log["pos_z_m"])[np.asarray(log["phase"]) == "abort_hold"]
+    assert held.size and float(held.max()) < 0.5  # stopped near the lift-off (0.3 m), far below 1.5 m
+    assert not run.armed and run.height_m < 0.05
+
+
 def test_plan_leaving_the_fence_is_refused_before_arming(tmp_path: Path) -> None:
     plan = circle_plan(geofence=dataclasses.replace(circle_plan().safety.geofence, max_m=(0.5, 2.5, 2.5)))
 

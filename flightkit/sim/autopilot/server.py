@@ -19,9 +19,13 @@ from flightkit.errors import EndpointError
 from flightkit.sim.autopilot.commands import _AutopilotInbound
 from flightkit.sim.autopilot.core import _Client
 
-__all__ = ['SimAutopilot']
+__all__ = ['MAX_TICK_S', 'SimAutopilot']
 
 logger = logging.getLogger(__name__)
+
+MAX_TICK_S = 0.25
+"""The longest physics step (clock seconds) one tick takes; a longer stall of the loop thread
+loses the rest, so the vehicle pauses rather than jumps."""
 
 
 class SimAutopilot(_AutopilotInbound):
@@ -184,7 +188,7 @@ class SimAutopilot(_AutopilotInbound):
             self.clock.sleep_blocking(tick_sim_s)
 
     def _tick(self, now: float) -> None:
-        dt = min(max(0.0, now - self._last_tick_s), 0.25)
+        dt = min(max(0.0, now - self._last_tick_s), MAX_TICK_S)
         self._last_tick_s = now
         self._update_modes(now)
         self._command_dynamics(now)
