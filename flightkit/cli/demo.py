@@ -215,7 +215,7 @@ def _run_vo(args: argparse.Namespace, cfg: Any, recording: Path, out: Path) -> N
     from estimation.evaluation import evaluate
     from estimation.pipeline import VoOptions, run_vo
     from estimation.plots import plot_evaluation
-    from flightkit.cli.vo import _print_report
+    from flightkit.cli.vo import print_report
     from flightkit.datasets import open_sequence, write_tum
 
     seq = open_sequence(
@@ -247,7 +247,7 @@ def _run_vo(args: argparse.Namespace, cfg: Any, recording: Path, out: Path) -> N
     write_tum(out / "gt_camera.txt", gt)
     report = evaluate(est, gt, alignment="none", delta=1, delta_unit="frames", max_diff_s=0.02)
     plots = plot_evaluation(report, out / "vo_plots")
-    _print_report(report, plots)
+    print_report(report, plots)
     print(f"      {len(result)} frames, {result.fps:.0f} frames/s of processing ({result.wall_s:.1f} s with decoding)")
 
 

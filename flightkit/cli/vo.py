@@ -16,7 +16,7 @@ both are paired line by line.
 ``sim:lawnmower`` -- the simulated camera (``flightkit.sim.sequence``) flown along the lab's
 pattern with its exact ground truth -- with options as a query:
 ``sim:circle?rate_hz=30&size=640x480&duration_s=20&start_s=0&seed=1&noise=2&blur_s=0.01``.
-See :func:`synthetic_sequence`.
+See :func:`flightkit.apps.sequences.synthetic_sequence`.
 """
 
 from __future__ import annotations
@@ -26,27 +26,13 @@ import json
 import logging
 import math
 import sys
-import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from flightkit.errors import EstimationError
-
 if TYPE_CHECKING:
-    from estimation.evaluation import EvaluationReport
-    from flightkit.datasets.trajectory import Trajectory
+    from flightkit.apps.vo import EvaluationReport
 
-__all__ = [
-    "SYNTHETIC_PATTERNS",
-    "lab_pattern",
-    "open_dataset",
-    "parse_sim_spec",
-    "register",
-    "run_eval",
-    "run_vo_command",
-    "synthetic_sequence",
-]
+__all__ = ["print_report", "register", "run_eval", "run_vo_command"]
 
 logger = logging.getLogger(__name__)
 
@@ -77,11 +63,6 @@ def register(subparsers: Any) -> None:
     ev.add_argument("--json", action="store_true", help="print the results as JSON instead of a table")
     ev.set_defaults(func=run_eval)
 
-    # ---------------------------------------------------------------------------------------
-    # `vo run` -- owned by the VO pipeline (estimation/pipeline.py). The arguments below map
-    # onto estimation.pipeline.run_vo(sequence, method, *, size, init_from_groundtruth, start,
-    # stop, progress); extend them here when run_vo grows options.
-    # ---------------------------------------------------------------------------------------
     rn = sub.add_parser(
         "run",
         help="run visual odometry on a dataset folder or recording",
@@ -105,206 +86,38 @@ def register(subparsers: Any) -> None:
     rn.set_defaults(func=run_vo_command)
 
 
-# ------------------------------------------------------------------ synthetic sequences
-SIM_PREFIX = "sim:"
-
-
-@dataclass(frozen=True, slots=True)
-class SyntheticWindow:
-    """The part of a lab pattern a synthetic sequence covers by default.
-
-    Attributes:
-        start_s: pattern time of the first frame.
-        duration_s: seconds of motion rendered.
-        what: what happens in the window (for tables and docs).
-    """
-
-    start_s: float
-    duration_s: float
-    what: str
-
-
-SYNTHETIC_PATTERNS: dict[str, SyntheticWindow] = {
-    "circle": SyntheticWindow(0.0, 12.0, "start of a lap of the 1 m circle at 1.5 m, 40 s/lap, looking inward"),
-    "rectangle": SyntheticWindow(14.0, 14.0, "end of the first 2 m side, the 90 deg corner turn, start of the next"),
-    "lawnmower": SyntheticWindow(15.0, 14.0, "end of the first 2 m lane, turn, 0.5 m shift to the next lane"),
-}
-"""The three lab patterns (as in ``examples/*.toml``), each with a short window of motion that
-contains what makes it hard for VO: the speed-up from rest, and the turns in place."""
-
-
-def lab_pattern(name: str) -> Any:
-    """The lab's pattern ``name`` (one lap, as flown by ``examples/<name>.toml``): a 1 m circle at
-    1.5 m, 40 s per lap, looking inward; a 2 m x 1 m rectangle at 0.1 m/s looking inward with
-    5 s turns; a lawnmower over 2 m x 1 m with 0.5 m lanes at 0.1 m/s facing the travel.
-
-    Raises:
-        EstimationError: unknown name.
-    """
-    from trajectories.patterns import Circle, Lawnmower, Rectangle, rectangle_corners
-
-    if name == "circle":
-        return Circle(centre_m=(0.0, 0.0), radius_m=1.0, height_m=1.5, period_s=40.0)
-    if name == "rectangle":
-        return Rectangle(rectangle_corners((0.0, 0.0), (2.0, 1.0)), 1.5, speed_m_s=0.1, accel_m_s2=0.2, turn_s=5.0)
-    if name == "lawnmower":
-        return Lawnmower((-1.0, -0.5), (2.0, 1.0), 0.5, 1.5, speed_m_s=0.1, accel_m_s2=0.2, turn_s=5.0)
-    raise EstimationError(
-        f"unknown synthetic pattern {name!r}; use one of {', '.join(SIM_PREFIX + n for n in SYNTHETIC_PATTERNS)}"
-    )
-
-
-def synthetic_sequence(
-    pattern: str,
-    *,
-    size: tuple[int, int] = (320, 240),
-    rate_hz: float = 15.0,
-    start_s: float | None = None,
-    duration_s: float | None = None,
-    seed: int = 0,
-    noise_std: float = 0.0,
-    blur_s: float = 0.0,
-    stereo: bool = True,
-    color: bool = True,
-    cache: bool = False,
-) -> Any:
-    """A :class:`flightkit.sim.sequence.SimSequence` of the simulated lab camera (the default
-    mount, 90 degrees HFOV, 5 cm stereo baseline) flown along the lab pattern ``pattern``.
-
-    Args:
-        pattern: ``circle``, ``rectangle`` or ``lawnmower``.
-        size: rendered image size (width, height).
-        rate_hz: frame rate.
-        start_s, duration_s: the pattern-time window (default: :data:`SYNTHETIC_PATTERNS`).
-        seed: scene layout (box placement and textures) and noise seed.
-        noise_std: image noise, grey levels (0 = none).
-        blur_s: motion-blur exposure, seconds (0 = none).
-        stereo, color, cache: see :class:`~flightkit.sim.sequence.SimSequence`.
-
-    Returns immediately; frames render when iterated (~25 ms per view at 320x240).
-
-    Raises:
-        EstimationError: unknown pattern.
-    """
-    from flightkit.config import CameraConfig
-    from flightkit.sim.camera import Scene
-    from flightkit.sim.sequence import ImagingOptions, SimSequence, body_poses_along
-
-    path = lab_pattern(pattern)
-    window = SYNTHETIC_PATTERNS[pattern]
-    start = window.start_s if start_s is None else start_s
-    duration = window.duration_s if duration_s is None else duration_s
-    duration = min(duration, float(path.duration_s) - start)
-    poses = body_poses_along(path, rate_hz, start_s=start, duration_s=duration)
-    camera_cfg = CameraConfig(width_px=size[0], height_px=size[1], rate_hz=rate_hz)
-    imaging = ImagingOptions(noise_std=noise_std, exposure_s=blur_s, seed=seed)
-    return SimSequence.from_config(
-        camera_cfg,
-        poses,
-        scene=Scene.default_lab(seed),
-        name=f"sim_{pattern}",
-        stereo=stereo,
-        color=color,
-        imaging=imaging,
-        cache=cache,
-    )
-
-
-def parse_sim_spec(spec: str) -> tuple[str, dict[str, Any]]:
-    """``"sim:circle?rate_hz=30&size=640x480"`` -> ``("circle", {"rate_hz": 30.0, "size": (640, 480)})``.
-
-    Raises:
-        EstimationError: not a ``sim:`` spec, or an unknown or malformed option.
-    """
-    from urllib.parse import parse_qsl
-
-    if not spec.startswith(SIM_PREFIX):
-        raise EstimationError(f"{spec!r} is not a synthetic sequence; write e.g. sim:circle")
-    name, _, query = spec[len(SIM_PREFIX) :].partition("?")
-    floats = {"rate_hz": "rate_hz", "start_s": "start_s", "duration_s": "duration_s", "noise": "noise_std"}
-    floats["blur_s"] = "blur_s"
-    kwargs: dict[str, Any] = {}
-    for key, value in parse_qsl(query, keep_blank_values=True, strict_parsing=bool(query)):
-        try:
-            if key in floats:
-                kwargs[floats[key]] = float(value)
-            elif key == "seed":
-                kwargs["seed"] = int(value)
-            elif key == "size":
-                size = _parse_size(value)
-                assert size is not None
-                kwargs["size"] = size
-            elif key == "stereo":
-                kwargs["stereo"] = value.lower() not in ("0", "false", "no")
-            else:
-                raise EstimationError(
-                    f"unknown option {key!r} in {spec!r}; use rate_hz, size, start_s, duration_s, seed, noise, "
-                    "blur_s or stereo"
-                )
-        except ValueError as exc:
-            raise EstimationError(f"option {key}={value!r} in {spec!r} is not a number") from exc
-    return name, kwargs
-
-
-def open_dataset(source: str | Path) -> Any:
-    """Open a dataset folder, recording or ``sim:PATTERN[?options]`` as a ``Sequence``.
-
-    Raises:
-        DatasetError: the path is missing or not recognised.
-        EstimationError: a malformed ``sim:`` spec.
-    """
-    from flightkit.datasets.registry import open_sequence
-
-    if isinstance(source, str) and source.startswith(SIM_PREFIX):
-        name, kwargs = parse_sim_spec(source)
-        return synthetic_sequence(name, **kwargs)
-    return open_sequence(Path(source))
-
-
 def _usage(parser: argparse.ArgumentParser) -> int:
     parser.print_help(sys.stderr)
     return 2
 
 
 # ------------------------------------------------------------------------------- vo eval
-def _load_trajectory(path: Path | str, times: Path | None, role: str) -> Trajectory:
-    from flightkit.datasets.trajectory import read_trajectory
-
-    if isinstance(path, str) and path.startswith(SIM_PREFIX):
-        seq = open_dataset(path)
-        return seq.groundtruth().renamed(f"{seq.name} ground truth")
-    path = Path(path)
-    if path.is_dir() or path.suffix.lower() == ".mcap":
-        seq = open_dataset(path)
-        return seq.groundtruth().renamed(f"{seq.name} ground truth")
-    traj = read_trajectory(path, times_path=times)
-    return traj.renamed(path.name)
-
-
 def run_eval(args: argparse.Namespace) -> int:
     """``flightkit vo eval``: returns the exit code."""
-    from estimation.evaluation import evaluate
+    from flightkit.apps.vo import evaluate_trajectories
 
-    est = _load_trajectory(args.est, args.est_times, "estimate")
-    gt = _load_trajectory(args.gt, args.gt_times, "ground truth")
-    report = evaluate(
-        est, gt, alignment=args.align, delta=args.delta, delta_unit=args.delta_unit, max_diff_s=args.max_diff
+    report, plots = evaluate_trajectories(
+        args.est,
+        args.gt,
+        alignment=args.align,
+        delta=args.delta,
+        delta_unit=args.delta_unit,
+        max_diff_s=args.max_diff,
+        est_times=args.est_times,
+        gt_times=args.gt_times,
+        plot_dir=args.plot_dir,
     )
-    plots = []
-    if args.plot_dir:
-        from estimation.plots import plot_evaluation
-
-        plots = plot_evaluation(report, args.plot_dir)
     if args.json:
         out = report.to_dict()
         out["plots"] = [str(p) for p in plots]
         print(json.dumps(out, indent=2))
     else:
-        _print_report(report, plots)
+        print_report(report, plots)
     return 0
 
 
-def _print_report(report: EvaluationReport, plots: list[Path]) -> None:
+def print_report(report: EvaluationReport, plots: list[Path]) -> None:
+    """Print an evaluation as a table (rich), then the plot paths."""
     from rich.console import Console
     from rich.table import Table
 
@@ -348,83 +161,41 @@ def _print_report(report: EvaluationReport, plots: list[Path]) -> None:
 
 
 # ------------------------------------------------------------------------------- vo run
-def _parse_size(text: str | None) -> tuple[int, int] | None:
-    if not text:
-        return None
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError as exc:
-        raise EstimationError(f"--size {text!r} is not WIDTHxHEIGHT; write e.g. 640x480") from exc
-    return w, h
-
-
 def run_vo_command(args: argparse.Namespace) -> int:
-    """``flightkit vo run``: calls ``estimation.pipeline.run_vo`` (the VO engineer's pipeline)."""
-    try:
-        from estimation import pipeline
-    except ImportError as exc:
-        raise EstimationError(f"the VO pipeline (estimation.pipeline) is not available: {exc}") from exc
-    if not hasattr(pipeline, "run_vo"):
-        raise EstimationError("estimation.pipeline has no run_vo(); the VO pipeline is not installed in this build")
+    """``flightkit vo run``: returns the exit code."""
     from rich.progress import Progress
 
-    seq = open_dataset(args.dataset)
-    t_start = time.perf_counter()
+    from flightkit.apps.sequences import parse_size
+    from flightkit.apps.vo import run_vo_job
+
     with Progress(transient=True) as progress:
-        task = progress.add_task(f"{args.method} on {seq.name}", total=len(seq))
+        task = progress.add_task(f"{args.method} on {args.dataset}", total=None)
 
         def on_progress(done: int, total: int) -> None:
             progress.update(task, completed=done, total=total)
 
-        result = pipeline.run_vo(
-            seq,
+        job = run_vo_job(
+            args.dataset,
             args.method,
-            size=_parse_size(args.size),
-            init_from_groundtruth=args.init_from_gt,
+            out=args.out,
+            size=parse_size(args.size) if args.size else None,
             start=args.start,
             stop=args.stop,
+            init_from_groundtruth=args.init_from_gt,
+            evaluate_result=args.eval,
+            alignment=args.align,
+            plot_dir=args.plot_dir,
             progress=on_progress,
-            **({"T_body_camera": seq.T_body_camera} if hasattr(seq, "T_body_camera") else {}),
         )
-    elapsed_s = time.perf_counter() - t_start
-    out = args.out or Path(f"{seq.name}_{args.method}.txt")
-    result.write_tum(out)
-    from estimation.timing import TimingTable
-
-    timing = TimingTable.from_stage_ms(result.stage_ms)
-    summary: dict[str, Any] = {"estimate": str(out), "frames": len(result), "timing": timing.to_dict()}
-    summary["speed"] = _speed(len(result), elapsed_s, result.fps, result.fps_cpu)
-    report = None
-    if (args.eval or args.plot_dir) and seq.has_groundtruth():
-        from estimation.evaluation import evaluate
-
-        report = evaluate(result.trajectory("camera"), seq.groundtruth(), alignment=args.align)
-        summary["evaluation"] = report.to_dict()
-        if args.plot_dir:
-            from estimation.plots import plot_evaluation
-
-            summary["plots"] = [str(p) for p in plot_evaluation(report, args.plot_dir)]
-    elif args.eval:
-        logger.warning("%s has no ground truth; skipping the evaluation", seq.name)
     if args.json:
-        print(json.dumps(summary, indent=2))
+        print(json.dumps(job.to_dict(), indent=2))
         return 0
-    print(f"wrote {out} ({len(result)} poses)")
-    print(timing.format())
-    if report is not None:
-        _print_report(report, [Path(p) for p in summary.get("plots", [])])
-    print(_speed_line(summary["speed"]))
+    print(f"wrote {job.estimate_path} ({len(job.result)} poses)")
+    print(job.timing.format())
+    if job.report is not None:
+        print_report(job.report, job.plots)
+    print(_speed_line(job.speed))
     return 0
-
-
-def _speed(frames: int, elapsed_s: float, fps_vo: float, fps_cpu: float) -> dict[str, float]:
-    return {
-        "frames": float(frames),
-        "elapsed_s": elapsed_s,
-        "fps": frames / elapsed_s if elapsed_s > 0 else math.inf,
-        "fps_vo": fps_vo,
-        "fps_vo_cpu": fps_cpu,
-    }
 
 
 def _speed_line(speed: dict[str, float]) -> str:

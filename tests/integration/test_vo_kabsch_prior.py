@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from bench._synthetic import prerendered
 from estimation.pipeline import FramePreparer, Method, Quality, VisualOdometry, VoOptions, run_vo
+from flightkit.apps.sequences import synthetic_sequence
 
 
 def test_prior_guided_rgbd_kabsch_takes_the_prior_path_and_matches_ransac() -> None:
-    seq = prerendered("circle", duration_s=4.0)
+    seq = synthetic_sequence("circle", duration_s=4.0, color=False, prerender=True)
     prep = FramePreparer(seq, Method.RGBD_KABSCH, None)
     vo: VisualOdometry | None = None
     poses, truth = [], []

@@ -1,6 +1,6 @@
 """Every VO method on synthetic sequences: the simulated camera flown along the lab's patterns.
 
-The sequences (``flightkit vo run sim:<pattern>``; ``bench/_synthetic.py``): the default lab
+The sequences (``flightkit vo run sim:<pattern>``; ``flightkit.apps.sequences``): the default lab
 camera (90 deg HFOV, 5 cm stereo baseline, mounted looking forward-down) at 320x240 and 15 Hz,
 on a quadrotor (tilt from acceleration) flying a window of each lab pattern at the lab's speeds:
 
@@ -26,9 +26,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench._synthetic import METHODS, prerendered
 from estimation.evaluation import ape, lab_errors, rpe
-from estimation.pipeline import Quality, VoOptions, VoResult, run_vo
+from estimation.pipeline import Method, Quality, VoOptions, VoResult, run_vo
+from flightkit.apps.sequences import synthetic_sequence
 from flightkit.cli.main import main
 from flightkit.datasets.trajectory import read_tum
 from flightkit.errors import EstimationError
@@ -72,7 +72,7 @@ def sequences() -> dict[str, SimSequence]:
 
 def _sequence(sequences: dict[str, SimSequence], pattern: str) -> SimSequence:
     if pattern not in sequences:
-        sequences[pattern] = prerendered(pattern)
+        sequences[pattern] = synthetic_sequence(pattern, color=False, prerender=True)
     return sequences[pattern]
 
 
@@ -81,7 +81,7 @@ def _run(seq: SimSequence, method: str) -> VoResult:
 
 
 @pytest.mark.parametrize("pattern", PATTERNS)
-@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("method", [m.value for m in Method])
 def test_method_tracks_the_lab_pattern(sequences: dict[str, SimSequence], pattern: str, method: str) -> None:
     seq = _sequence(sequences, pattern)
     res = _run(seq, method)
@@ -124,7 +124,7 @@ def test_ground_truth_follows_the_pattern_with_quadrotor_tilt(sequences: dict[st
 
 
 def test_noisy_images_keep_the_errors_small() -> None:
-    seq = prerendered("circle", duration_s=4.0, noise_std=3.0, seed=1)
+    seq = synthetic_sequence("circle", duration_s=4.0, noise_std=3.0, seed=1, color=False, prerender=True)
     # 4 s of the circle with 3 grey levels of noise: measured ATE 0.0032 / 0.0024 m, per step 0.6 / 1.0 mm.
     for method, bound in (("rgbd-pnp", 0.007), ("stereo", 0.006)):
         res = _run(seq, method)
