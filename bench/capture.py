@@ -42,7 +42,7 @@ def free_port() -> int:
 
 class McapPackageWriter:
     """The ``mcap`` package's Writer behind the FastMcapWriter interface: the recorder as it was
-    before capture.mcapwriter (``--writer mcap``), for before/after figures in one run."""
+    before flightkit.datasets.mcap_writer (``--writer mcap``), for before/after figures in one run."""
 
     def __init__(self, fh: object, compression: str = "") -> None:
         from mcap.writer import CompressionType, Writer
@@ -210,9 +210,9 @@ def encoded_pool(width: int, height: int) -> list[tuple[bytes, bytes]]:
 
 
 def bare_fast_writer_mb_s(tmp: Path, compression: str, width: int, height: int, frames: int) -> float:
-    """The recorder's own writer (capture.mcapwriter) in a bare loop, same payloads as below."""
-    from capture.mcapwriter import FastMcapWriter
+    """The recorder's own writer (flightkit.datasets.mcap_writer) in a bare loop, same payloads as below."""
     from flightkit.bus.msgs import schema_text
+    from flightkit.datasets.mcap_writer import FastMcapWriter
 
     pool = encoded_pool(width, height)
     path = tmp / f"bare_fast_{compression}.mcap"
@@ -274,7 +274,7 @@ def main() -> int:
     ap.add_argument("--role", choices=("main", "recorder", "publisher"), default="main", help=argparse.SUPPRESS)
     ap.add_argument("--peak-only", action="store_true", help="skip the lab workload")
     ap.add_argument("--writer", choices=("flightkit", "mcap"), default="flightkit",
-                    help="the recorder's MCAP writer: capture.mcapwriter (default) or the mcap package's (as before)")
+                    help="the MCAP writer: flightkit.datasets.mcap_writer (default) or the mcap package's")
     ap.add_argument("--no-retry", dest="retry", action="store_false",
                     help="peak: stop at the first lossy step (default: a step fails when it loses twice in a row)")
     ap.add_argument("--compressions", nargs="+", default=["none", "zstd", "lz4"], choices=("none", "zstd", "lz4"))

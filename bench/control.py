@@ -51,12 +51,12 @@ from pymavlink.dialects.v20 import common as mavlink2
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # `bench._host` when run as a script
 
 from bench._host import StealMeter  # noqa: E402
+from flightkit.apps.sim_session import fly_plan_in_sim  # noqa: E402
 from flightkit.link.base import VelocitySetpoint  # noqa: E402
 from flightkit.link.mavlink import encode_velocity_setpoint  # noqa: E402
 from trajectories.flightlog import read_flight_log  # noqa: E402
 from trajectories.plan import Plan, load_plan  # noqa: E402
 from trajectories.runner import FlightRunner  # noqa: E402
-from trajectories.simulated import fly_plan_in_sim  # noqa: E402
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 SPM = mavlink2.MAVLINK_MSG_ID_SET_POSITION_TARGET_LOCAL_NED

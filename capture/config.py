@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from flightkit.bus.streams import CameraStreamSelection
 from flightkit.config import setting
 
 __all__ = ["CaptureConfig"]
@@ -33,6 +34,10 @@ class CaptureConfig:
     chunk_size_mb: float = setting(4.0, min=0.01, max=256.0, help="recorder chunk size")
     chunk_max_age_s: float = setting(0.5, min=0.01, max=60.0, help="close a chunk at least this often")
     queue_limit_mb: float = setting(1024.0, min=1.0, max=65536.0, help="memory the recorder may buffer")
+
+    def streams(self) -> CameraStreamSelection:
+        """The publisher switches of this section."""
+        return CameraStreamSelection(self.color, self.depth, self.stereo, self.tf, self.jpeg_quality)
 
     @staticmethod
     def _check(obj: CaptureConfig, path: str, prefix: str) -> None:

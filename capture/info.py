@@ -5,15 +5,14 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from mcap.reader import make_reader
+from flightkit.datasets.mcap_reader import RecordingReader, namespace_of
+from flightkit.errors import CaptureError, DatasetError
 
-from flightkit.errors import CaptureError
-
-__all__ = ["RecordingInfo", "StreamInfo", "recording_info"]
+__all__ = ["RecordingInfo", "StreamStats", "recording_info"]
 
 
 @dataclass
-class StreamInfo:
+class StreamStats:
     """One channel of a recording.
 
     Attributes:
@@ -37,6 +36,11 @@ class StreamInfo:
         return (self.last_ns - self.first_ns) / 1e9
 
     @property
+    def namespace(self) -> str:
+        """The vehicle namespace of the topic."""
+        return namespace_of(self.topic)
+
+    @property
     def rate_hz(self) -> float:
         return (self.count - 1) / self.duration_s if self.count > 1 and self.duration_s > 0 else 0.0
 
@@ -47,8 +51,15 @@ class RecordingInfo:
     size_bytes: int
     profile: str
     library: str
-    streams: list[StreamInfo]
+    streams: list[StreamStats]
     metadata: dict[str, dict[str, str]]
+
+    def by_vehicle(self) -> dict[str, list[StreamStats]]:
+        """The streams grouped by vehicle namespace (first element of the topic), sorted."""
+        out: dict[str, list[StreamStats]] = {}
+        for s in self.streams:
+            out.setdefault(s.namespace, []).append(s)
+        return dict(sorted(out.items()))
 
     @property
     def start_ns(self) -> int:
@@ -76,31 +87,22 @@ def recording_info(path: str | Path, gap_factor: float = 3.0) -> RecordingInfo:
     p = Path(path)
     if not p.is_file():
         raise CaptureError(f"{p} does not exist; check the path")
-    stamps: dict[int, list[int]] = {}
-    seqs: dict[int, list[int]] = {}
-    sizes: dict[int, int] = {}
+    stamps: dict[str, list[int]] = {}
+    seqs: dict[str, list[int]] = {}
+    sizes: dict[str, int] = {}
     try:
-        with p.open("rb") as fh:
-            reader = make_reader(fh)
-            header = reader.get_header()
-            metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
-            channels = {}
-            for schema, channel, message in reader.iter_messages(log_time_order=False):
-                channels[channel.id] = (channel.topic, schema.name if schema else "")
-                stamps.setdefault(channel.id, []).append(message.log_time)
-                seqs.setdefault(channel.id, []).append(message.sequence)
-                sizes[channel.id] = sizes.get(channel.id, 0) + len(message.data)
-    except CaptureError:
-        raise
-    except Exception as exc:
-        raise CaptureError(
-            f"{p} is not a readable MCAP file ({exc}); if the recording crashed, run "
-            f"'flightkit capture recover {p} -o FIXED.mcap'"
-        ) from exc
+        rec = RecordingReader(p)
+        types = {s.topic: s.schema_name for s in rec.streams}
+        for m in rec.messages(log_time_order=False):
+            stamps.setdefault(m.topic, []).append(m.log_time_ns)
+            seqs.setdefault(m.topic, []).append(m.sequence)
+            sizes[m.topic] = sizes.get(m.topic, 0) + len(m.data)
+    except DatasetError as exc:
+        raise CaptureError(str(exc)) from exc
     streams = []
-    for cid, (topic, msgtype) in sorted(channels.items(), key=lambda kv: kv[1][0]):
-        ts = sorted(stamps[cid])
-        info = StreamInfo(topic, msgtype, len(ts), sizes[cid], ts[0], ts[-1])
+    for topic in sorted(stamps):
+        ts = sorted(stamps[topic])
+        info = StreamStats(topic, types.get(topic, ""), len(ts), sizes[topic], ts[0], ts[-1])
         if len(ts) > 1:
             periods = [(b - a) / 1e9 for a, b in zip(ts, ts[1:], strict=False)]
             srt = sorted(periods)
@@ -108,8 +110,8 @@ def recording_info(path: str | Path, gap_factor: float = 3.0) -> RecordingInfo:
             info.max_gap_s = srt[-1]
             limit = gap_factor * info.median_period_s
             info.gaps = [(ts[i], d) for i, d in enumerate(periods) if limit > 0 and d > limit]
-        sq = sorted(seqs[cid])
+        sq = sorted(seqs[topic])
         if sq and sq[-1] > sq[0]:
             info.missed_seq = max(0, (sq[-1] - sq[0] + 1) - len(set(sq)))
         streams.append(info)
-    return RecordingInfo(p, p.stat().st_size, header.profile, header.library, streams, metadata)
+    return RecordingInfo(p, p.stat().st_size, rec.profile, rec.library, streams, rec.metadata)

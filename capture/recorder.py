@@ -13,7 +13,7 @@ back-pressuring the publishers. Chunks are closed every ``chunk_size`` bytes or
 written the recorder checks the free space (and the process's file-size limit), and on a
 full disk it stops with a clear message and leaves a valid file of everything written.
 
-Writing: :class:`~capture.mcapwriter.FastMcapWriter` keeps each payload by reference and
+Writing: :class:`~flightkit.datasets.mcap_writer.FastMcapWriter` keeps each payload by reference and
 hands a closed chunk to ``os.writev`` (or streams it through zstd/lz4), so the writer
 thread copies no payload bytes with the GIL held and the bus callback threads of the
 process are not starved (the ``mcap`` package's writer copied each payload twice).
@@ -32,11 +32,9 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from mcap.writer import CompressionType
-
-from capture.mcapfile import finalize_in_place
-from capture.mcapwriter import FastMcapWriter
 from flightkit import __version__
+from flightkit.datasets.mcap_recovery import finalize_in_place
+from flightkit.datasets.mcap_writer import CompressionType, FastMcapWriter
 from flightkit.errors import CaptureError
 
 __all__ = ["Compression", "Recorder", "RecordingReport", "StreamSample", "StreamStats", "qos_profile_yaml"]

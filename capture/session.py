@@ -36,16 +36,16 @@ import zenoh
 
 from capture.config import CaptureConfig
 from capture.recorder import Compression, Recorder, RecordingReport, StreamSample, StreamStats
-from capture.streams import is_best_effort
 from flightkit.bus.keys import Keys
 from flightkit.bus.msgs import CameraInfo, schema_text
 from flightkit.bus.pubsub import BusSample, BusSubscriber
 from flightkit.bus.session import open_session
+from flightkit.bus.streams import is_best_effort
 from flightkit.config import BusConfig, LabConfig
+from flightkit.datasets.mcap_reader import transform_to_json
 from flightkit.errors import BusError, CaptureError
-from flightkit.frames import Transform
 
-__all__ = ["BusRecorder", "compression_from_name", "recording_metadata", "start_recording", "transform_metadata"]
+__all__ = ["BusRecorder", "compression_from_name", "recording_metadata", "start_recording"]
 
 logger = logging.getLogger(__name__)
 
@@ -60,13 +60,6 @@ def compression_from_name(name: str) -> Compression:
     if name not in table:
         raise CaptureError(f"compression {name!r} is not known; use zstd, lz4 or none")
     return table[name]
-
-
-def transform_metadata(T: Transform) -> str:  # noqa: N803
-    """A transform as JSON text for metadata: ``{"translation_m": [...], "quat_xyzw": [...]}``."""
-    return json.dumps(
-        {"translation_m": [float(v) for v in T.translation], "quat_xyzw": [float(v) for v in T.quat_xyzw]}
-    )
 
 
 def _plain(value: Any) -> Any:
@@ -101,8 +94,8 @@ def recording_metadata(lab_cfg: LabConfig | None) -> dict[str, dict[str, str]]:
     return {
         "config": config,
         "extrinsics": {
-            "T_body_camera": transform_metadata(cam.T_body_camera.to_transform()),
-            "T_world_mocap": transform_metadata(lab_cfg.mocap.T_world_mocap.to_transform()),
+            "T_body_camera": transform_to_json(cam.T_body_camera.to_transform()),
+            "T_world_mocap": transform_to_json(lab_cfg.mocap.T_world_mocap.to_transform()),
             "mocap_body": lab_cfg.mocap.body,
             "camera_frame": "opencv (x right, y down, z forward)",
             "body_frame": "flu",

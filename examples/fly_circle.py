@@ -18,10 +18,10 @@ import asyncio
 import contextlib
 import math
 
+from flightkit.apps.sim_session import sim_session
 from flightkit.config import LabConfig, load_config
 from trajectories.patterns import Circle
 from trajectories.script import Flight
-from trajectories.simulated import sim_session
 
 
 async def fly(flight: Flight, laps: int, period_s: float, hold_s: float) -> None:

@@ -15,9 +15,9 @@ import argparse
 import asyncio
 from pathlib import Path
 
+from flightkit.apps.sim_session import fly_plan_in_sim
 from trajectories.plan import load_plan
 from trajectories.plots import plot_flight_log
-from trajectories.simulated import fly_plan_in_sim
 
 
 def main() -> int:

@@ -13,9 +13,9 @@ from __future__ import annotations
 import argparse
 import asyncio
 
+from flightkit.apps.sim_session import sim_session
 from flightkit.errors import SafetyAbort
 from trajectories.script import Flight
-from trajectories.simulated import sim_session
 
 
 async def main() -> None:

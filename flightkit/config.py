@@ -35,7 +35,7 @@ import math
 import tomllib
 import types
 import typing
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
@@ -209,6 +209,15 @@ class BusConfig:
     tls_cert: str = setting("", help="PEM certificate for tls/ endpoints")
     tls_key: str = setting("", help="PEM private key for tls/ endpoints")
     zenoh_config_file: str = setting("", help="a full Zenoh JSON5 config (access control etc.) to start from")
+
+    def with_endpoints(self, connect: Sequence[str] | None = None, listen: Sequence[str] | None = None) -> BusConfig:
+        """This config with the command line's ``--connect`` / ``--listen`` endpoints (None keeps the config's)."""
+        out = self
+        if connect:
+            out = dataclasses.replace(out, connect=tuple(connect))
+        if listen:
+            out = dataclasses.replace(out, listen=tuple(listen))
+        return out
 
 
 @dataclass(frozen=True, slots=True)

@@ -8,6 +8,7 @@
     │   ├── EndpointError      a connection string we cannot open (bad syntax, port in use)
     │   ├── LinkTimeout        nothing answered in time (heartbeat, COMMAND_ACK, state change)
     │   └── CommandRejected    the autopilot answered "no" (carries its reason and STATUSTEXT)
+    ├── FrameError             a pose in a frame that cannot be placed in the world
     ├── SetpointError          a setpoint that is out of range or malformed
     ├── MocapError             mocap source failures
     │   └── MocapBodyMissing   the rigid body is not visible (carries the bodies that are)
@@ -33,6 +34,7 @@ __all__ = [
     "EndpointError",
     "EstimationError",
     "FlightkitError",
+    "FrameError",
     "LinkError",
     "LinkTimeout",
     "MocapBodyMissing",
@@ -104,6 +106,23 @@ class CommandRejected(LinkError):
         reason = f" ({'; '.join(statustext)})" if statustext else ""
         tail = f"; {hint}" if hint else ""
         super().__init__(f"autopilot refused {command}: {result}{reason}{tail}")
+
+
+class FrameError(FlightkitError):
+    """A pose names a frame (``frame_id``) that cannot be placed in the world.
+
+    Attributes:
+        frame_id: the frame named.
+        known: the frames that can be placed.
+    """
+
+    def __init__(self, frame_id: str, known: tuple[str, ...]) -> None:
+        self.frame_id = frame_id
+        self.known = known
+        super().__init__(
+            f"poses in frame {frame_id!r} cannot be placed in the world (known frames: {', '.join(known)}); "
+            "publish them in one of these frames or give that frame's transform to the world"
+        )
 
 
 class SetpointError(FlightkitError):

@@ -9,6 +9,10 @@ Conventions (the full text is ``docs/frames.md``):
 * NED (world) and FRD (body) exist only at the MAVLink edge; the conversions live here
   and nowhere else.
 * Quaternions always spell out their order: ``quat_wxyz`` or ``quat_xyzw`` (scipy's order).
+* A pose on the bus or in a recording names its frame (``frame_id``): ``"world"`` or
+  ``"mocap"`` (the mocap system's own frame). :class:`WorldFrames` places every named frame
+  in the world, so a reader turns any pose into ``T_world_body`` in one call, and refuses a
+  frame it cannot place.
 
 Rotations are scipy's :class:`~scipy.spatial.transform.Rotation`; nothing here hand-rolls
 quaternion algebra.
@@ -24,11 +28,17 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
+from flightkit.errors import FrameError
+
 __all__ = [
+    "MOCAP_FRAME_ID",
     "R_ENU_NED",
     "R_FLU_FRD",
+    "WORLD_FRAME_ID",
     "Transform",
     "Vec3",
+    "Vec3Tuple",
+    "WorldFrames",
     "angle_diff_rad",
     "enu_to_ned",
     "flu_to_frd",
@@ -47,7 +57,16 @@ __all__ = [
 ]
 
 Vec3 = npt.NDArray[np.float64]
-"""A 3-vector, shape (3,)."""
+"""A 3-vector as an array, shape (3,)."""
+
+Vec3Tuple = tuple[float, float, float]
+"""A 3-vector as a plain tuple (message fields, pattern geometry)."""
+
+WORLD_FRAME_ID = "world"
+"""``frame_id`` of poses in the lab's world frame (ENU, z up)."""
+
+MOCAP_FRAME_ID = "mocap"
+"""``frame_id`` of poses in the mocap system's own frame (as Vicon/OptiTrack report them)."""
 
 # Frame-change rotations. R_ENU_NED maps NED coordinates into ENU (x_e = y_n, y_e = x_n, z_e = -z_n);
 # it is its own inverse. R_FLU_FRD maps FRD body coordinates into FLU (a rotation of pi about x).
@@ -260,3 +279,52 @@ class Transform:
         t = ", ".join(f"{x:.4f}" for x in self.translation)
         q = ", ".join(f"{x:.4f}" for x in self.quat_wxyz)
         return f"Transform(t=[{t}], q_wxyz=[{q}])"
+
+
+@dataclass(frozen=True, slots=True)
+class WorldFrames:
+    """Where each named frame sits in the world: the one place a pose's ``frame_id`` is resolved.
+
+    ``"world"`` is always known (the identity); ``"mocap"`` maps through ``T_world_mocap``;
+    ``extra`` names further frames (e.g. an autopilot's local frame, ``T_world_local``).
+
+    Attributes:
+        T_world_mocap: the mocap system's frame in the world (from config or a recording).
+        extra: frame id -> ``T_world_frame``.
+    """
+
+    T_world_mocap: Transform = field(default_factory=Transform.identity)
+    extra: tuple[tuple[str, Transform], ...] = ()
+
+    def known(self) -> tuple[str, ...]:
+        """Every frame id this table can place."""
+        return (WORLD_FRAME_ID, MOCAP_FRAME_ID, *(name for name, _ in self.extra))
+
+    def T_world(self, frame_id: str) -> Transform:  # noqa: N802
+        """``T_world_<frame_id>``.
+
+        Raises:
+            FrameError: the frame is not one this table knows (the message names it and the known ones).
+        """
+        if frame_id == WORLD_FRAME_ID:
+            return Transform.identity()
+        if frame_id == MOCAP_FRAME_ID:
+            return self.T_world_mocap
+        for name, T in self.extra:
+            if name == frame_id:
+                return T
+        raise FrameError(frame_id, self.known())
+
+    def to_world(self, frame_id: str, T_frame_body: Transform) -> Transform:  # noqa: N803
+        """``T_world_body`` of a pose given in ``frame_id``.
+
+        Raises:
+            FrameError: unknown frame.
+        """
+        if frame_id == WORLD_FRAME_ID:
+            return T_frame_body
+        return self.T_world(frame_id) @ T_frame_body
+
+    def to_mocap(self, T_world_body: Transform) -> Transform:  # noqa: N803
+        """``T_mocap_body`` of a world pose (what the mocap system measures)."""
+        return self.T_world_mocap.inverse() @ T_world_body

@@ -1022,7 +1022,7 @@ def open_lab_mocap(lab: LabConfig, clock: Clock) -> MocapSource:
 
     Raises:
         MocapError: no mocap backend is available; pass a source (e.g. a
-            :class:`~flightkit.mocap.simulated.SimMocapSource`) instead.
+            :class:`~flightkit.sim.mocap.SimMocapSource`) instead.
     """
     import flightkit.mocap as mocap_pkg
 

@@ -5,22 +5,21 @@ returns when the source is exhausted or :attr:`SourceThread.stopping` is set) an
 :meth:`SourceThread._count` after each published item. Blocking libraries (OpenCV,
 pyrealsense2, libmotioncapture) live only on that thread (STYLE 6).
 """
-
 from __future__ import annotations
 
 import logging
 import threading
-from types import TracebackType
 from typing import Self
 
 from flightkit.clock import Clock, sleep_until
 from flightkit.errors import CaptureError
+from flightkit.lifetime import Running
 
 __all__ = ["SourceThread"]
 
 logger = logging.getLogger(__name__)
 
-class SourceThread:
+class SourceThread(Running):
     """One daemon thread publishing a source; ``with`` starts and stops it.
 
     Attributes:
@@ -142,11 +141,3 @@ class SourceThread:
             # A blocking driver call may not return (a stalled device): the daemon is abandoned.
             t.join(timeout=timeout_s)
         self._close_outputs()
-
-    def __enter__(self) -> Self:
-        return self.start()
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.stop()

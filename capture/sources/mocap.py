@@ -4,10 +4,8 @@ Every pose becomes ``geometry_msgs/PoseStamped`` on ``<ns>/mocap/<body>/pose`` *
 mocap system's own frame** (``frame_id "mocap"``), exactly as the simulator publishes it and
 as :class:`~flightkit.mocap.bus_source.BusMocapSource` expects: consumers apply
 ``T_world_mocap`` from their config, so a bus consumer and an in-process consumer of the
-same system see the same ``T_world_body``. Sources hand out world poses, so the bridge
-undoes the source's ``T_world_mocap`` (``T_mocap_body = T_world_mocap^-1 @ T_world_body``);
-:func:`open_bridge_source` builds a motioncapture source with the identity mapping so the
-published numbers are the system's own, untouched.
+same system see the same ``T_world_body``. The bridge publishes each pose as the system
+measured it (``MocapPose.T_mocap_body``), never a world pose turned back.
 
 A lost body (occluded; ``valid=False``) is published as a NaN pose, the bus's way of saying
 "lost" (BusMocapSource turns it back into ``valid=False``). Stamps are the source's.
@@ -28,24 +26,20 @@ from typing import Any
 
 import zenoh
 
-from capture.streams import PosePublisher
 from flightkit.bus.keys import Keys
-from flightkit.bus.msgs import Header, PoseStamped
+from flightkit.bus.streams import PosePublisher
 from flightkit.clock import Clock
 from flightkit.errors import BusError, CaptureError
-from flightkit.frames import Transform
+from flightkit.frames import WorldFrames
 from flightkit.mocap.base import MocapPose, MocapSource
 
-__all__ = ["MOCAP_FRAME_ID", "MocapBridge", "open_bridge_source"]
+__all__ = ["MocapBridge", "open_bridge_source"]
 
 logger = logging.getLogger(__name__)
 
-MOCAP_FRAME_ID = "mocap"
-_NAN = float("nan")
-
 
 def open_bridge_source(lab_cfg: Any, clock: Clock, *, connect_timeout_s: float = 5.0) -> MocapSource:
-    """The mocap system named by ``lab_cfg.mocap`` as a source for the bridge (mocap-frame poses).
+    """The mocap system named by ``lab_cfg.mocap`` as a source for the bridge.
 
     Only ``mocap.source = "motioncapture"`` makes sense here: a ``bus`` source already is on the bus.
 
@@ -66,7 +60,7 @@ def open_bridge_source(lab_cfg: Any, clock: Clock, *, connect_timeout_s: float =
         clock,
         hostname=cfg.hostname,
         options=cfg.options,
-        T_world_mocap=Transform.identity(),
+        frames=WorldFrames(cfg.T_world_mocap.to_transform()),
         connect_timeout_s=connect_timeout_s,
     )
 
@@ -77,9 +71,7 @@ class MocapBridge:
     Args:
         session: an open Zenoh session.
         keys: the vehicle namespace (all bodies go under it).
-        source: an entered MocapSource.
-        T_world_mocap: the mapping the source applies (identity for :func:`open_bridge_source`);
-            undone before publishing.
+        source: an entered MocapSource of a mocap system (its poses carry ``T_mocap_body``).
         bodies: only these bodies (None: every body the source reports).
     """
 
@@ -89,14 +81,11 @@ class MocapBridge:
         keys: Keys,
         source: MocapSource,
         *,
-        T_world_mocap: Transform | None = None,  # noqa: N803
         bodies: Sequence[str] | None = None,
     ) -> None:
         self._session = session
         self.keys = keys
         self.source = source
-        self._T_mocap_world = (T_world_mocap or Transform.identity()).inverse()
-        self._identity = T_world_mocap is None or T_world_mocap.almost_equal(Transform.identity(), 0.0, 0.0)
         self._only = set(bodies) if bodies else None
         self._pubs: dict[str, PosePublisher | None] = {}
         self.published = 0
@@ -112,7 +101,7 @@ class MocapBridge:
             return self._pubs[body]
         pub: PosePublisher | None = None
         try:
-            pub = PosePublisher(self._session, self.keys, body, frame_id=MOCAP_FRAME_ID)
+            pub = PosePublisher(self._session, self.keys, body)
             logger.info("bridging mocap body %r to %s", body, pub.key)
         except BusError as exc:
             logger.warning("not bridging mocap body %r: %s", body, exc)
@@ -127,12 +116,13 @@ class MocapBridge:
         pub = self._publisher(pose.body)
         if pub is None:
             return False
-        if pose.valid:
-            T = pose.T_world_body if self._identity else self._T_mocap_world @ pose.T_world_body  # noqa: N806
-            pub.publish(pose.stamp_ns, T)
-        else:
-            lost = PoseStamped(Header(pose.stamp_ns, MOCAP_FRAME_ID), (_NAN,) * 3, (_NAN,) * 4)
-            pub._pub.put(lost.encode(), pose.stamp_ns)  # noqa: SLF001 - same publisher, raw payload
+        if pose.valid and pose.T_mocap_body is None:
+            raise CaptureError(
+                f"the bridge's source gave body {pose.body!r} without its mocap-frame pose; bridge a mocap "
+                "system's source (open_bridge_source), not a world-frame one"
+            )
+        pub.publish(pose.stamp_ns, pose.T_mocap_body if pose.valid else None)
+        if not pose.valid:
             self.lost_published += 1
         self.published += 1
         self.per_body[pose.body] = self.per_body.get(pose.body, 0) + 1

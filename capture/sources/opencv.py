@@ -17,7 +17,7 @@ Stamps: ``clock.time_ns()`` right after ``grab()`` returns, i.e. when the frame 
 
 Calibration: the video-dataset format (:mod:`flightkit.datasets.video`: JSON or OpenCV
 YAML with fx, fy, cx, cy, width, height, dist), found beside a video file or given
-explicitly; a :class:`~capture.streams.CameraModel` may be passed instead.
+explicitly; a :class:`~flightkit.bus.streams.CameraModel` may be passed instead.
 
 A device that vanishes (unplugged, driver reset) is reported once (WARNING) and reopened
 every ``retry_s`` until it is back (INFO); frames in between are simply missing.
@@ -36,10 +36,10 @@ import numpy.typing as npt
 import zenoh
 
 from capture.sources._runner import SourceThread
-from capture.streams import CameraModel, CameraStream, has_subscribers, optical_frame_id
 from flightkit.bus.keys import Keys
 from flightkit.bus.msgs import CameraInfo, CompressedImage, Header
 from flightkit.bus.pubsub import BusPublisher
+from flightkit.bus.streams import CameraModel, CameraStream, has_subscribers, optical_frame_id
 from flightkit.clock import Clock
 from flightkit.errors import CaptureError, DatasetError
 

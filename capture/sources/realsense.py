@@ -32,8 +32,8 @@ import numpy.typing as npt
 import zenoh
 
 from capture.sources._runner import SourceThread
-from capture.streams import CameraModel, CameraStream, optical_frame_id
 from flightkit.bus.keys import Keys
+from flightkit.bus.streams import CameraModel, CameraStream, optical_frame_id
 from flightkit.clock import Clock
 from flightkit.errors import CaptureError
 

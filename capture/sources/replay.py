@@ -36,11 +36,12 @@ import zenoh
 
 from capture.sources._runner import SourceThread
 from capture.sources.realsense import depth_to_mm
-from capture.streams import CameraModel, CameraStream, PosePublisher, has_subscribers, optical_frame_id
 from flightkit.bus.keys import Keys
 from flightkit.bus.msgs import Image
 from flightkit.bus.pubsub import BusPublisher
+from flightkit.bus.streams import CameraModel, CameraStream, PosePublisher, has_subscribers, optical_frame_id
 from flightkit.clock import Clock
+from flightkit.datasets.mcap_reader import RecordingReader
 from flightkit.errors import BusError, CaptureError, DatasetError
 
 __all__ = ["DatasetReplayPublisher", "McapReplayPublisher", "open_replay"]
@@ -104,64 +105,44 @@ class McapReplayPublisher(SourceThread):
         topics: Sequence[str] | None = None,
         key_prefix: str = "",
     ) -> None:
-        from mcap.reader import make_reader
-
         super().__init__(clock)
         self.path = Path(path)
         self.speed = _check_speed(speed)
         self.thread_name = f"mcap-replay {self.path.name}"
         try:
-            with self.path.open("rb") as fh:
-                summary = make_reader(fh).get_summary()
-        except OSError as exc:
-            raise CaptureError(f"cannot open {self.path}: {exc.strerror}; check the path") from exc
-        except Exception as exc:
-            raise CaptureError(
-                f"{self.path} is not a readable MCAP file ({exc}); if it crashed, run "
-                f"'flightkit capture recover {self.path} -o FIXED.mcap' first"
-            ) from exc
-        if summary is None:
-            raise CaptureError(
-                f"{self.path} has no summary; run 'flightkit capture recover {self.path} -o FIXED.mcap'"
-            )
+            self.reader = RecordingReader(self.path)
+        except DatasetError as exc:
+            raise CaptureError(str(exc)) from exc
         wanted = {t.lstrip("/") for t in topics} if topics else None
         prefix = key_prefix.strip("/")
-        self._pubs: dict[int, BusPublisher] = {}
         self.key_of: dict[str, str] = {}
         self.skipped: list[str] = []
-        for cid, ch in sorted(summary.channels.items()):
-            topic = ch.topic.lstrip("/")
+        self._pubs: dict[str, BusPublisher] = {}
+        for st in self.reader.streams:
+            topic = st.topic.lstrip("/")
             if wanted is not None and topic not in wanted:
                 continue
-            schema = summary.schemas.get(ch.schema_id)
-            if ch.message_encoding != "cdr" or schema is None:
-                self.skipped.append(ch.topic)
-                logger.warning(
-                    "not replaying %s: %s payloads are not ROS 2 CDR", ch.topic, ch.message_encoding
-                )
+            if st.encoding != "cdr" or not st.schema_name:
+                self.skipped.append(st.topic)
+                logger.warning("not replaying %s: %s payloads are not ROS 2 CDR", st.topic, st.encoding)
                 continue
             key = f"{prefix}/{topic}" if prefix else topic
             try:
-                self._pubs[cid] = BusPublisher(
-                    session, key, schema.name, reliable=True, drop_when_congested=False
+                self._pubs[st.topic] = BusPublisher(
+                    session, key, st.schema_name, reliable=True, drop_when_congested=False
                 )
             except BusError as exc:
-                self.skipped.append(ch.topic)
-                logger.warning("not replaying %s: %s", ch.topic, exc)
+                self.skipped.append(st.topic)
+                logger.warning("not replaying %s: %s", st.topic, exc)
                 continue
-            self.key_of[ch.topic] = key
+            self.key_of[st.topic] = key
         if not self._pubs:
             raise CaptureError(
                 f"{self.path} has no CDR channel to replay"
                 + (f" among topics {sorted(wanted)}" if wanted else "")
                 + "; check the recording with 'flightkit capture info'"
             )
-        stats = summary.statistics
-        self.total = (
-            sum(n for c, n in stats.channel_message_counts.items() if c in self._pubs)
-            if stats is not None
-            else 0
-        )
+        self.total = sum(st.count for st in self.reader.streams if st.topic in self._pubs)
 
     @property
     def keys(self) -> list[str]:
@@ -173,21 +154,14 @@ class McapReplayPublisher(SourceThread):
         return all(has_subscribers(p) for p in self._pubs.values())
 
     def _run_loop(self) -> None:
-        from mcap.reader import make_reader
-
         pacer = _Pacer(self, self.speed)
         pubs = self._pubs
         logger.info("replaying %s (%d messages) at %gx", self.path, self.total, self.speed)
-        with self.path.open("rb") as fh:
-            reader = make_reader(fh)
-            for _schema, channel, message in reader.iter_messages(log_time_order=True):
-                pub = pubs.get(channel.id)
-                if pub is None:
-                    continue
-                if not pacer.wait(message.log_time):
-                    return
-                pub.put(message.data, message.publish_time)
-                self._count()
+        for m in self.reader.messages(sorted(pubs)):
+            if not pacer.wait(m.log_time_ns):
+                return
+            pubs[m.topic].put(m.data, m.publish_time_ns)
+            self._count()
         logger.info("replay of %s finished: %d messages", self.path, self.published)
 
     def _close_outputs(self) -> None:
@@ -206,17 +180,7 @@ def _model(intr: Any, baseline_tx: float = 0.0) -> CameraModel:
 
 def _open_dataset(path: Path, options: dict[str, Any]) -> Any:
     from flightkit.datasets import open_sequence
-    from flightkit.datasets.tum import is_tum_folder
 
-    if (
-        path.is_dir()
-        and is_tum_folder(path)
-        and (path / "camera.yaml").is_file()
-        and "intrinsics" not in options
-    ):
-        from capture.export import read_tum_calibration
-
-        options = {**options, "intrinsics": read_tum_calibration(path)}
     try:
         return open_sequence(path, **options)
     except DatasetError as exc:
@@ -375,10 +339,12 @@ def open_replay(
     clock: Clock,
     *,
     speed: float = 1.0,
-    **options: Any,
+    key_prefix: str = "",
+    gt_body: str = "groundtruth",
 ) -> McapReplayPublisher | DatasetReplayPublisher:
-    """An MCAP file -> :class:`McapReplayPublisher`; anything else -> :class:`DatasetReplayPublisher`."""
+    """An MCAP file -> :class:`McapReplayPublisher` (under ``key_prefix``); anything else ->
+    :class:`DatasetReplayPublisher` (ground truth as ``gt_body``)."""
     p = Path(path)
     if p.is_file() and p.suffix.lower() == ".mcap":
-        return McapReplayPublisher(session, p, clock, speed=speed, **options)
-    return DatasetReplayPublisher(session, keys, p, clock, speed=speed, **options)
+        return McapReplayPublisher(session, p, clock, speed=speed, key_prefix=key_prefix)
+    return DatasetReplayPublisher(session, keys, p, clock, speed=speed, gt_body=gt_body)

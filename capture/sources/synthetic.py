@@ -24,8 +24,8 @@ import numpy as np
 import numpy.typing as npt
 import zenoh
 
-from capture.streams import CameraModel, CameraStream, PosePublisher
 from flightkit.bus.keys import Keys
+from flightkit.bus.streams import CameraModel, CameraStream, PosePublisher
 from flightkit.clock import Clock, WallClock
 from flightkit.errors import CaptureError
 from flightkit.frames import Transform

@@ -9,7 +9,6 @@ PNG map, and sends navigation orders (reliably, in order) to a robot by id or na
 Everything here is in map units (see :mod:`.mapframe`); the server never needs to know the
 world frame.
 """
-
 from __future__ import annotations
 
 import json
@@ -20,11 +19,11 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import TracebackType
 from typing import IO, Self
 
 from flightkit.clock import Clock, WallClock
 from flightkit.errors import ProtocolError
+from flightkit.lifetime import Running
 
 from .messages import MsgType, NavOrder, PoseUpdate, Segment
 from .session import (
@@ -103,7 +102,7 @@ def parse_orders(text: str, source: str = "<orders>") -> list[OrderLine]:
     return out
 
 
-class MapServer:
+class MapServer(Running):
     """Serve ``ports``; see the module docstring.
 
     Args:
@@ -174,14 +173,6 @@ class MapServer:
             if self._log is not None:
                 self._log.close()
                 self._log = None
-
-    def __enter__(self) -> Self:
-        return self.start()
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.stop()
 
     # ------------------------------------------------------------------ queries
 

@@ -15,7 +15,6 @@ frame by frame (frames end at a zero byte), and on the way it can
 
 Faults are drawn from a seeded :class:`random.Random` so a failing run can be repeated.
 """
-
 from __future__ import annotations
 
 import heapq
@@ -29,8 +28,9 @@ import time
 import tty
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import TracebackType
 from typing import Self
+
+from flightkit.lifetime import Running
 
 __all__ = ["Faults", "PtyRelay", "RelayStats"]
 
@@ -73,7 +73,7 @@ class _Direction:
     queue: list[tuple[float, int, bytes]] = field(default_factory=list)
 
 
-class PtyRelay:
+class PtyRelay(Running):
     """Relay between ``path_a`` (e.g. the robot's port) and ``path_b`` (the server's).
 
     Args:
@@ -136,14 +136,6 @@ class PtyRelay:
                 os.close(fd)
             except OSError:
                 pass
-
-    def __enter__(self) -> Self:
-        return self.start()
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.stop()
 
     # ------------------------------------------------------------------ faults
 

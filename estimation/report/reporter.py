@@ -11,11 +11,12 @@ only the latest offered pose is sent when the line is free); :meth:`Reporter.rep
 queues a wall segment for reliable delivery; navigation orders from the server arrive in
 :attr:`Reporter.nav_orders` and through the ``on_nav_order`` callback.
 
-Pose sources are plain iterables or async iterables of :class:`PoseSample`; helpers read
-TUM trajectory files and MCAP ``geometry_msgs/msg/PoseStamped`` topics, replay them on a
-clock, and adapt a flightkit :class:`~flightkit.mocap.base.MocapSource`.
+Pose sources are plain iterables or async iterables of :class:`PoseSample`, always in the world
+frame; helpers read TUM trajectory files and MCAP ``geometry_msgs/msg/PoseStamped`` topics
+(placed in the world by the frame each pose names, with the recording's ``T_world_mocap``),
+read pose streams from the bus (likewise), replay them on a clock, and adapt a flightkit
+:class:`~flightkit.mocap.base.MocapSource`.
 """
-
 from __future__ import annotations
 
 import asyncio
@@ -29,12 +30,12 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any, Self
 
-import numpy as np
-
 from flightkit.clock import Clock, WallClock
 from flightkit.config import setting
 from flightkit.errors import DatasetError, ProtocolError
-from flightkit.frames import Transform
+from flightkit.frames import Transform, WorldFrames
+from flightkit.lifetime import Running
+from flightkit.mocap.base import MocapSource
 
 from .mapframe import MapFrame, MapFrameConfig
 from .messages import Capability, NavOrder, Segment
@@ -99,7 +100,7 @@ class ReceivedOrder:
     heading_world_rad: float  # NaN: any heading
 
 
-class Reporter:
+class Reporter(Running):
     """Report poses over ``port``; see the module docstring.
 
     Args:
@@ -166,12 +167,6 @@ class Reporter:
     def stop(self) -> None:
         """Say goodbye and close the port (undelivered reliable messages are dropped)."""
         self.transport.stop()
-
-    def __enter__(self) -> Self:
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
 
     async def __aenter__(self) -> Self:
         return self.start()
@@ -331,54 +326,37 @@ def read_tum_samples(path: str | Path) -> list[PoseSample]:
     return [PoseSample(int(traj.stamps_ns[i]), traj.transform(i)) for i in range(len(traj))]
 
 
-def read_mcap_samples(path: str | Path, topic: str | None = None) -> list[PoseSample]:
-    """Poses of a ``geometry_msgs/msg/PoseStamped`` topic in an MCAP recording.
+def read_mcap_samples(
+    path: str | Path, topic: str | None = None, *, T_world_mocap: Transform | None = None  # noqa: N803
+) -> list[PoseSample]:
+    """Poses of a ``geometry_msgs/msg/PoseStamped`` topic in an MCAP recording, in the world frame.
 
     Args:
         path: the .mcap file.
         topic: the topic; None takes the only PoseStamped topic (an error if there are several).
+        T_world_mocap: overrides the recording's own mocap frame (its ``extrinsics`` metadata).
 
     Raises:
         DatasetError: when the file has no (or several, with ``topic`` None) pose topics.
+        FrameError: a pose in a frame the recording cannot place in the world.
     """
-    from mcap.reader import make_reader
+    from flightkit.datasets.mcap_reader import RecordingReader
 
-    from flightkit.bus.msgs import PoseStamped
-
-    p = Path(path)
-    try:
-        fh = p.open("rb")
-    except OSError as exc:
-        raise DatasetError(f"cannot open recording {p}: {exc.strerror}; check the path") from exc
-    with fh:
-        reader = make_reader(fh)
-        summary = reader.get_summary()
-        channels = summary.channels.values() if summary else []
-        schemas = summary.schemas if summary else {}
-        pose_topics = sorted(
-            {
-                c.topic
-                for c in channels
-                if schemas.get(c.schema_id) and schemas[c.schema_id].name.endswith("PoseStamped")
-            }
-        )
-        if topic is None:
-            if len(pose_topics) != 1:
-                raise DatasetError(
-                    f"{p} has {len(pose_topics)} PoseStamped topics ({', '.join(pose_topics) or 'none'}); "
-                    "name one with --topic"
-                )
-            topic = pose_topics[0]
-        elif topic not in pose_topics:
+    rec = RecordingReader(path)
+    pose_topics = rec.pose_topics()
+    if topic is None:
+        if len(pose_topics) != 1:
             raise DatasetError(
-                f"{p} has no PoseStamped topic {topic!r}; it has: {', '.join(pose_topics) or 'none'}"
+                f"{rec.path} has {len(pose_topics)} PoseStamped topics ({', '.join(pose_topics) or 'none'}); "
+                "name one with --topic"
             )
-        out: list[PoseSample] = []
-        for _schema, _channel, message in reader.iter_messages(topics=[topic]):
-            msg = PoseStamped.decode(message.data)
-            stamp_ns = msg.header.stamp_ns or int(message.log_time)
-            out.append(PoseSample(stamp_ns, msg.to_transform()))
-    return out
+        topic = pose_topics[0]
+    elif topic not in pose_topics:
+        raise DatasetError(
+            f"{rec.path} has no PoseStamped topic {topic!r}; it has: {', '.join(pose_topics) or 'none'}"
+        )
+    traj = rec.pose_trajectory(topic, rec.world_frames(T_world_mocap))
+    return [PoseSample(int(traj.stamps_ns[i]), traj.transform(i)) for i in range(len(traj))]
 
 
 async def replay_samples(
@@ -402,11 +380,16 @@ async def replay_samples(
         yield PoseSample(t0_ns + int(due * 1e9), s.T_world_body, s.quality) if restamp else s
 
 
-async def bus_pose_samples(session: Any, key: str) -> AsyncIterator[PoseSample]:
-    """Poses of a ``geometry_msgs/msg/PoseStamped`` stream on the bus (e.g. VO odometry,
-    published in the world frame), as pose samples; runs until cancelled."""
+async def bus_pose_samples(session: Any, key: str, frames: WorldFrames) -> AsyncIterator[PoseSample]:
+    """Poses of a ``geometry_msgs/msg/PoseStamped`` stream on the bus (mocap poses, VO odometry),
+    placed in the world by the frame each names; runs until cancelled.
+
+    Raises:
+        FrameError: a pose in a frame ``frames`` cannot place.
+    """
     from flightkit.bus.msgs import PoseStamped
     from flightkit.bus.pubsub import BusSubscriber
+    from flightkit.mocap.bus_source import pose_is_valid
 
     sub = BusSubscriber(session, key)
     try:
@@ -414,23 +397,15 @@ async def bus_pose_samples(session: Any, key: str) -> AsyncIterator[PoseSample]:
             if s.msgtype and s.msgtype != PoseStamped.TYPE:
                 continue
             msg = PoseStamped.decode(s.payload)
-            yield PoseSample(msg.header.stamp_ns or s.stamp_ns, msg.to_transform())
+            if not pose_is_valid(msg):
+                continue  # a lost body
+            T_world_body = frames.to_world(msg.header.frame_id, msg.to_transform())  # noqa: N806
+            yield PoseSample(msg.header.stamp_ns or s.stamp_ns, T_world_body)
     finally:
         sub.close()
 
 
-async def mocap_samples(source: Any, body: str) -> AsyncIterator[PoseSample]:
+async def mocap_samples(source: MocapSource, body: str) -> AsyncIterator[PoseSample]:
     """Adapt a :class:`~flightkit.mocap.base.MocapSource` (already entered) to pose samples."""
     async for pose in source.poses(body):
         yield PoseSample(pose.stamp_ns, pose.T_world_body, 255 if pose.valid else 0)
-
-
-def samples_from_arrays(
-    stamps_ns: Sequence[int], positions_m: Any, yaws_rad: Sequence[float]
-) -> list[PoseSample]:
-    """Samples from arrays of stamps, world positions (N, 3) and headings."""
-    pos = np.asarray(positions_m, dtype=np.float64).reshape(-1, 3)
-    return [
-        PoseSample(int(t), Transform.from_xyz_yaw(p, float(y)))
-        for t, p, y in zip(stamps_ns, pos, yaws_rad, strict=True)
-    ]

@@ -18,7 +18,6 @@ clear warning, keeps the endpoint (and its undelivered reliable messages), retri
 the port every ``reopen_interval_s`` and resumes when it is back; the session's heartbeats
 then detect the gap and re-handshake.
 """
-
 from __future__ import annotations
 
 import logging
@@ -30,13 +29,13 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from types import TracebackType
 from typing import Any, Protocol, Self, TypeVar
 
 import serial
 
 from flightkit.clock import Clock, WallClock
 from flightkit.errors import ProtocolError
+from flightkit.lifetime import Running
 
 from .session import Event
 
@@ -82,7 +81,7 @@ class TransportStats:
     losses: int = 0
 
 
-class SerialTransport:
+class SerialTransport(Running):
     """Run ``endpoint`` over the serial port ``url`` on a background thread.
 
     Use as a context manager (or call :meth:`start` / :meth:`stop`). Talk to the endpoint
@@ -182,14 +181,6 @@ class SerialTransport:
                 os.close(fd)
             except OSError:
                 pass
-
-    def __enter__(self) -> Self:
-        return self.start()
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.stop()
 
     @property
     def port_open(self) -> bool:

@@ -6,6 +6,7 @@ import argparse
 import json
 import logging
 from datetime import UTC, datetime
+from pathlib import Path
 from typing import Any
 
 logger = logging.getLogger(__name__)
@@ -60,13 +61,20 @@ def _iso(stamp_ns: int) -> str:
 
 
 def run_info(args: argparse.Namespace) -> int:
+    """``flightkit capture info``: returns the exit code."""
+    print_info(args.recording, gap_factor=args.gap_factor, as_json=args.json)
+    return 0
+
+
+def print_info(recording: str | Path, *, gap_factor: float = 3.0, as_json: bool = False) -> None:
+    """Print what a recording holds: a table per vehicle namespace (or JSON)."""
     from rich.console import Console
     from rich.table import Table
 
-    from capture.info import recording_info
+    from flightkit.apps.capture import recording_info
 
-    info = recording_info(args.recording, gap_factor=args.gap_factor)
-    if args.json:
+    info = recording_info(recording, gap_factor=gap_factor)
+    if as_json:
         print(
             json.dumps(
                 {
@@ -76,9 +84,11 @@ def run_info(args: argparse.Namespace) -> int:
                     "duration_s": info.duration_s,
                     "messages": info.messages,
                     "metadata": info.metadata,
+                    "vehicles": sorted(info.by_vehicle()),
                     "streams": [
                         {
                             "topic": s.topic,
+                            "vehicle": s.namespace,
                             "type": s.msgtype,
                             "count": s.count,
                             "bytes": s.bytes,
@@ -95,7 +105,7 @@ def run_info(args: argparse.Namespace) -> int:
                 indent=2,
             )
         )
-        return 0
+        return
     console = Console()
     if not console.is_terminal:
         console = Console(width=160)
@@ -104,24 +114,25 @@ def run_info(args: argparse.Namespace) -> int:
         f"{info.messages} messages, {info.duration_s:.2f} s"
     )
     t0 = info.start_ns
-    table = Table(caption=f"times relative to the first message at {_iso(t0)} UTC")
-    for col in ("topic", "type", "count", "rate Hz", "MB", "start s", "end s", "max gap s", "gaps", "missed"):
-        text_col = col in ("topic", "type")
-        table.add_column(col, justify="left" if text_col else "right", overflow="fold", no_wrap=not text_col)
-    for s in info.streams:
-        table.add_row(
-            s.topic, s.msgtype, str(s.count), f"{s.rate_hz:.1f}", f"{s.bytes / 1e6:.2f}",
-            f"{(s.first_ns - t0) / 1e9:.3f}", f"{(s.last_ns - t0) / 1e9:.3f}", f"{s.max_gap_s:.3f}",
-            str(len(s.gaps)), str(s.missed_seq),
-        )
-    console.print(table)
+    for vehicle, streams in info.by_vehicle().items():
+        title = f"vehicle {vehicle}" if vehicle else "no namespace"
+        table = Table(title=title, caption=f"times relative to the first message at {_iso(t0)} UTC")
+        for col in ("topic", "type", "count", "rate Hz", "MB", "start s", "end s", "max gap s", "gaps", "missed"):
+            text_col = col in ("topic", "type")
+            table.add_column(col, justify="left" if text_col else "right", overflow="fold", no_wrap=not text_col)
+        for s in streams:
+            table.add_row(
+                s.topic, s.msgtype, str(s.count), f"{s.rate_hz:.1f}", f"{s.bytes / 1e6:.2f}",
+                f"{(s.first_ns - t0) / 1e9:.3f}", f"{(s.last_ns - t0) / 1e9:.3f}", f"{s.max_gap_s:.3f}",
+                str(len(s.gaps)), str(s.missed_seq),
+            )
+        console.print(table)
     if info.metadata:
         console.print("metadata: " + ", ".join(sorted(info.metadata)))
-    return 0
 
 
 def run_recover(args: argparse.Namespace) -> int:
-    from capture.mcapfile import recover
+    from flightkit.apps.capture import recover
 
     report = recover(args.crashed, args.output, allow_overwrite=args.force)
     print(f"{args.output}: {report.summary()}")
@@ -129,82 +140,6 @@ def run_recover(args: argparse.Namespace) -> int:
 
 
 # --------------------------------------------------------------------------- publish
-
-
-def _publish_bus_config(args: argparse.Namespace, lab: Any) -> Any:
-    import dataclasses
-
-    cfg = lab.bus
-    if args.connect:
-        cfg = dataclasses.replace(cfg, connect=tuple(args.connect))
-    if args.listen:
-        cfg = dataclasses.replace(cfg, listen=tuple(args.listen))
-    return cfg
-
-
-def _parse_source(text: str) -> tuple[str, str]:
-    from flightkit.errors import ConfigError
-
-    kind, _, arg = text.partition(":")
-    if kind in ("realsense", "mocap") and not arg:
-        return kind, ""
-    if kind in ("camera", "video", "replay") and arg:
-        return kind, arg
-    raise ConfigError(
-        "<command line>", "SOURCE", f"{text!r} is not a source",
-        "use camera:0, camera:/dev/video2, video:FILE, realsense, replay:RUN.mcap, replay:DIR or mocap", text,
-    )
-
-
-def _make_source(kind: str, arg: str, args: argparse.Namespace, lab: Any, session: Any) -> Any:
-    import math
-    from pathlib import Path
-
-    from capture.config import CaptureConfig
-    from capture.streams import CameraModel
-    from flightkit.bus.keys import Keys
-    from flightkit.clock import SimClock, WallClock
-    from flightkit.errors import CaptureError
-
-    keys = Keys(lab.vehicle.namespace)
-    cap_cfg = lab.section("capture", CaptureConfig)
-    if not args.speed > 0:
-        raise CaptureError(f"--speed {args.speed} must be positive (1 = as recorded)")
-    if kind in ("camera", "video"):
-        from capture.sources.opencv import OpenCVCameraPublisher
-
-        quality = args.jpeg_quality if args.jpeg_quality is not None else (
-            cap_cfg.jpeg_quality or (90 if args.format == "jpeg" else 0))
-        model = None
-        if args.calibration is None and kind == "camera":
-            cam = lab.camera  # no calibration file: the [camera] section of the config
-            fx, fy, cx, cy = cam.intrinsics()
-            model = CameraModel(cam.width_px, cam.height_px, fx, fy, cx, cy)
-            logger.warning("camera %s: no --calibration given; publishing the [camera] intrinsics of the config", arg)
-        if kind == "video" and not Path(arg).is_file():
-            raise CaptureError(f"video {arg} does not exist; check the path")
-        speed = args.speed if math.isfinite(args.speed) else 1000.0
-        clock = SimClock(speed=speed) if kind == "video" and speed != 1.0 else WallClock()
-        return OpenCVCameraPublisher(
-            session, keys, arg, clock, model=model, calibration=args.calibration, name=args.name,
-            color_format=args.format, jpeg_quality=quality, rate_hz=args.rate, loop=args.loop,
-        )
-    if kind == "realsense":
-        from capture.sources.realsense import RealSensePublisher
-
-        cam = lab.camera
-        return RealSensePublisher(
-            session, keys, WallClock(), width_px=cam.width_px, height_px=cam.height_px,
-            rate_hz=int(args.rate or cam.rate_hz), depth=cap_cfg.depth, jpeg_quality=cap_cfg.jpeg_quality,
-        )
-    from capture.sources.replay import DatasetReplayPublisher, McapReplayPublisher
-
-    path = Path(arg)
-    if not path.exists():
-        raise CaptureError(f"{path} does not exist; give an .mcap recording or a dataset folder")
-    if path.is_file() and path.suffix.lower() == ".mcap":
-        return McapReplayPublisher(session, path, WallClock(), speed=args.speed, key_prefix=args.key_prefix)
-    return DatasetReplayPublisher(session, keys, path, WallClock(), speed=args.speed, gt_body=args.gt_body)
 
 
 def _wait_loop(source: Any, args: argparse.Namespace, stop: Any, console: Any) -> str:
@@ -234,11 +169,13 @@ def run_publish(args: argparse.Namespace) -> int:
 
     from rich.console import Console
 
+    from flightkit.apps.capture import PublishOptions, open_publisher, parse_source
     from flightkit.bus.session import open_session
     from flightkit.config import load_config
 
-    kind, arg = _parse_source(args.source)
+    kind, arg = parse_source(args.source)
     lab = load_config(args.config) if args.config else load_config()
+    bus_cfg = lab.bus.with_endpoints(args.connect, args.listen)
     stop = threading.Event()
 
     def on_signal(signum: int, _frame: Any) -> None:
@@ -246,11 +183,15 @@ def run_publish(args: argparse.Namespace) -> int:
 
     console = Console(stderr=True)
     if kind == "mocap":
-        return _run_mocap(args, lab, console)
+        return _run_mocap(args, lab, bus_cfg, console)
+    opts = PublishOptions(
+        speed=args.speed, calibration=args.calibration, color_format=args.format, jpeg_quality=args.jpeg_quality,
+        rate_hz=args.rate, loop=args.loop, name=args.name, key_prefix=args.key_prefix, gt_body=args.gt_body,
+    )
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
-        with open_session(_publish_bus_config(args, lab)) as session:
-            source = _make_source(kind, arg, args, lab, session)
+        with open_session(bus_cfg) as session:
+            source = open_publisher(kind, arg, lab, session, opts)
             console.print(f"publishing {args.source} on {', '.join(source.keys)} (Ctrl-C to stop)")
             t0 = time.monotonic()
             try:
@@ -276,16 +217,11 @@ def run_publish(args: argparse.Namespace) -> int:
     return 0
 
 
-def _run_mocap(args: argparse.Namespace, lab: Any, console: Any) -> int:
+def _run_mocap(args: argparse.Namespace, lab: Any, bus_cfg: Any, console: Any) -> int:
     import asyncio
     import signal
 
-    from capture.sources.mocap import MocapBridge, open_bridge_source
-    from flightkit.bus.keys import Keys
-    from flightkit.bus.session import open_session
-    from flightkit.clock import WallClock
-
-    clock = WallClock()
+    from flightkit.apps.capture import bridge_mocap
 
     async def bridge_main() -> tuple[int, str]:
         loop = asyncio.get_running_loop()
@@ -301,19 +237,10 @@ def _run_mocap(args: argparse.Namespace, lab: Any, console: Any) -> int:
         for s in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(s, on_signal)
         try:
-            with open_session(_publish_bus_config(args, lab)) as session:
-                async with open_bridge_source(lab, clock) as source:
-                    bridge = MocapBridge(session, Keys(lab.vehicle.namespace), source)
-                    console.print(f"bridging mocap {lab.mocap.system_type} to {lab.vehicle.namespace}/mocap/*/pose")
-                    try:
-                        await bridge.run(args.duration, clock)
-                        if args.duration:
-                            why = "duration"
-                    except asyncio.CancelledError:
-                        pass
-                    finally:
-                        bridge.close()
-                    return bridge.published, why
+            published = await bridge_mocap(lab, bus_cfg, args.duration, on_start=console.print)
+            if args.duration and why != "signal":
+                why = "duration"
+            return published, why
         finally:
             for s in (signal.SIGINT, signal.SIGTERM):
                 loop.remove_signal_handler(s)

@@ -11,7 +11,8 @@ def register(sub: Any) -> None:
         "export",
         help="export a recording to a TUM RGB-D or EuRoC folder",
         description="Write images, depth, associations, ground truth (mocap body through the extrinsics to the "
-        "camera) and calibration files. The folder opens with flightkit.datasets.open_sequence.",
+        "camera, in the world frame by default) and calibration files. The folder opens with "
+        "flightkit.datasets.open_sequence.",
     )
     p.add_argument("recording", help="an .mcap recording")
     p.add_argument("--format", required=True, choices=("tum", "euroc"), help="folder layout")
@@ -19,10 +20,14 @@ def register(sub: Any) -> None:
     p.add_argument("--camera", help="main camera name (default: color for TUM, left for EuRoC)")
     p.add_argument("--body", help="mocap rigid body for ground truth (default: the first one)")
     p.add_argument("--max-diff", type=float, default=0.02, metavar="S", help="association limit (TUM: 0.02 s)")
-    p.add_argument("--config", metavar="LAB.toml", help="take T_body_camera from this config instead of the recording")
     p.add_argument(
-        "--world", action="store_true",
-        help="express ground truth in the world frame (mocap.T_world_mocap from --config) instead of the mocap frame",
+        "--config", metavar="LAB.toml",
+        help="take T_body_camera and T_world_mocap from this config instead of the recording",
+    )
+    p.add_argument(
+        "--frame", choices=("world", "mocap"), default="world",
+        help="frame of the ground truth: world (the recording's T_world_mocap applied; default) or mocap "
+        "(the mocap system's own frame, as TUM and EuRoC publish)",
     )
     p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
     p.set_defaults(func=run)
@@ -32,18 +37,14 @@ def run(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-    from capture.export import export_recording
+    from flightkit.apps.capture import export_recording
     from flightkit.config import load_config
-    from flightkit.errors import ConfigError
 
     T_body_camera = T_world_mocap = None  # noqa: N806
     if args.config:
         lab = load_config(args.config)
         T_body_camera = lab.camera.T_body_camera.to_transform()  # noqa: N806
-        if args.world:
-            T_world_mocap = lab.mocap.T_world_mocap.to_transform()  # noqa: N806
-    elif args.world:
-        raise ConfigError("<command line>", "--world", "needs T_world_mocap", "give --config LAB.toml as well")
+        T_world_mocap = lab.mocap.T_world_mocap.to_transform()  # noqa: N806
     console = Console(stderr=True)
     with Progress(
         TextColumn("exporting"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(), console=console,
@@ -57,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
         report = export_recording(
             args.recording, args.output, args.format, camera=args.camera, mocap_body=args.body,
             max_diff_s=args.max_diff, T_body_camera=T_body_camera, T_world_mocap=T_world_mocap,
-            allow_overwrite=args.force, progress=progress,
+            frame=args.frame, allow_overwrite=args.force, progress=progress,
         )
     print(report.summary())
     for note in report.notes:

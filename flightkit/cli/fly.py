@@ -1,13 +1,12 @@
 """``flightkit fly PLAN.toml``: fly a plan with the safety supervisor, a live status line and a summary.
 
 ``--connect sim`` (or ``--sim``) starts the simulated lab in this process and flies against it
-over real UDP, with the simulator's mocap as the source (``trajectories.simulated``).
+over real UDP, with the simulator's mocap as the source (``flightkit.apps.sim_session``).
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 from typing import Any
 
@@ -55,27 +54,18 @@ def register(subparsers: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     import asyncio
 
-    from flightkit.config import Autopilot, LinkBackend, MocapSourceKind, load_config
-    from trajectories.plan import load_plan
-    from trajectories.runner import Status, fly_plan
+    from flightkit.apps.flight import Status, fly, lab_with_overrides, load_plan, plot_log
+    from flightkit.config import load_config
 
     plan = load_plan(args.plan)
-    lab = load_config(args.config) if args.config else load_config()
     sim = args.sim or args.connect == "sim"
-    link = lab.link
-    if args.connect and not sim:
-        link = dataclasses.replace(link, url=args.connect)
-    if args.backend:
-        link = dataclasses.replace(link, backend=LinkBackend(args.backend))
-    mocap = lab.mocap
-    if args.mocap:
-        mocap = dataclasses.replace(mocap, source=MocapSourceKind(args.mocap))
-    lab = dataclasses.replace(lab, link=link, mocap=mocap)
-    if args.autopilot:
-        lab = dataclasses.replace(
-            lab, vehicle=dataclasses.replace(lab.vehicle, autopilot=Autopilot(args.autopilot))
-        )
-
+    lab = lab_with_overrides(
+        load_config(args.config) if args.config else load_config(),
+        url=None if sim else args.connect,
+        backend=args.backend,
+        mocap_source=args.mocap,
+        autopilot=args.autopilot,
+    )
     tty = sys.stderr.isatty()
 
     def on_status(s: Status) -> None:
@@ -85,18 +75,10 @@ def run(args: argparse.Namespace) -> int:
         else:
             print(line, file=sys.stderr)
 
-    if sim:
-        from trajectories.simulated import fly_plan_in_sim
-
-        # nobody holds a transmitter in the simulator: the script arms
-        flight = fly_plan_in_sim(
-            plan, lab, speed=args.speed, arm=True, log_path=args.log, on_status=on_status, handle_signals=True
-        )
-    else:
-        flight = fly_plan(
-            plan, lab, arm=args.arm, log_path=args.log, on_status=on_status, handle_signals=True
-        )
-    summary = asyncio.run(flight)
+    summary = asyncio.run(
+        fly(plan, lab, sim=sim, speed=args.speed, arm=args.arm, log_path=args.log, on_status=on_status,
+            handle_signals=True)
+    )
     if tty:
         print(file=sys.stderr)
     if args.json:
@@ -104,8 +86,6 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(summary.format_table())
     if args.plot and summary.log_path:
-        from trajectories.plots import plot_flight_log
-
-        for p in plot_flight_log(summary.log_path):
+        for p in plot_log(summary.log_path):
             print(f"plot: {p}")
     return 0 if summary.outcome == "completed" else 1

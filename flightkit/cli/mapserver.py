@@ -75,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
     import time
     from pathlib import Path
 
-    from estimation.report.mapserver import MapServer, parse_orders
+    from flightkit.apps.report import MapServer, parse_orders
     from flightkit.errors import ConfigError
 
     orders = []

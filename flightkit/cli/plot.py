@@ -16,15 +16,8 @@ def register(subparsers: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from flightkit.errors import ConfigError
-    from trajectories.plots import plot_flight_log
+    from flightkit.apps.flight import plot_log
 
-    try:
-        paths = plot_flight_log(args.log, args.out)
-    except FileNotFoundError:
-        raise ConfigError(args.log, "(file)", "file not found", "give the path of a flight log") from None
-    except ValueError as exc:
-        raise ConfigError(args.log, "(file)", str(exc), "give a log written by 'flightkit fly'") from None
-    for p in paths:
+    for p in plot_log(args.log, args.out):
         print(p)
     return 0

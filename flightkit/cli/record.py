@@ -32,17 +32,6 @@ def register(sub: Any) -> None:
     p.set_defaults(func=run)
 
 
-def _bus_config(args: argparse.Namespace, lab: Any) -> Any:
-    import dataclasses
-
-    cfg = lab.bus
-    if args.connect:
-        cfg = dataclasses.replace(cfg, connect=tuple(args.connect))
-    if args.listen:
-        cfg = dataclasses.replace(cfg, listen=tuple(args.listen))
-    return cfg
-
-
 def _table(rows: dict[str, Any], prev: dict[str, Any], dt_s: float, final: bool) -> Any:
     from rich.table import Table
 
@@ -79,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.live import Live
 
-    from capture.session import start_recording
+    from flightkit.apps.capture import start_recording
     from flightkit.config import load_config
 
     lab = load_config(args.config) if args.config else load_config()
@@ -100,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         rec = start_recording(
             args.output,
-            bus_cfg=_bus_config(args, lab),
+            bus_cfg=lab.bus.with_endpoints(args.connect, args.listen),
             topics=args.topics,
             lab_cfg=lab,
             compression=args.compression,

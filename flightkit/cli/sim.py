@@ -57,13 +57,14 @@ def register(subparsers: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import dataclasses
     import threading
 
-    from flightkit.clock import SimClock
+    from flightkit.apps.sim_lab import SimLabServed, serve_sim_lab
     from flightkit.config import load_config
     from flightkit.errors import ConfigError
     from flightkit.sim.autopilot import AutopilotOptions
-    from flightkit.sim.lab import SimEvent, SimLab
+    from flightkit.sim.lab import SimEvent
 
     config = load_config(args.config) if args.config else load_config()
     speed = args.speed if args.speed is not None else config.sim.speed
@@ -71,6 +72,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(
             "<command line>", "--speed", f"{speed!r} is not a positive number", "give e.g. --speed 5"
         )
+    config = dataclasses.replace(config, sim=dataclasses.replace(config.sim, speed=float(speed)))
     url = args.connect or args.listen or "udpin:127.0.0.1:14540"
     key_hex = args.signing_key if args.signing_key is not None else config.link.signing_key_hex
     key: bytes | None = None
@@ -87,16 +89,14 @@ def run(args: argparse.Namespace) -> int:
         heading_offset_rad=math.radians(args.heading_offset_deg),
         signing_key=key,
     )
-    lab = SimLab(config, autopilot=args.autopilot, clock=SimClock(speed), options=options)
 
     def show(event: SimEvent) -> None:
         if event.kind in ("param",):
             return
         print(f"[t={event.stamp_s:8.2f} s] {event.kind}: {event.detail}", flush=True)
 
-    lab.events.append(show)
-    stop = threading.Event()
-    with lab:
+    def ready(served: SimLabServed) -> None:
+        lab = served.lab
         print(f"flightkit sim: {lab.personality.vehicle_name}, {lab.clock!r}")
         if url.startswith("udpout"):
             print(f"  MAVLink: sending to {url.split(':', 1)[1].lstrip('/')} from local port {lab.port}")
@@ -107,69 +107,24 @@ def run(args: argparse.Namespace) -> int:
             )
         if key is not None:
             print("  MAVLink 2 signing: on (unsigned messages are ignored)")
-        publisher = None if args.no_mocap else _start_mocap(lab, config)
-        camera = None if args.no_camera or not config.camera.enabled else _start_camera(lab, config)
-        try:
-            print("  Ctrl-C to stop")
-            while not stop.wait(0.5):
-                pass
-        except KeyboardInterrupt:
-            print("flightkit sim: stopping")
-        finally:
-            if camera is not None:
-                camera.stop()
-            if publisher is not None:
-                publisher.stop()
-    return 0
+        if served.keys:
+            print(f"  bus: mocap (PoseStamped in the mocap frame) and camera on {', '.join(served.keys)}")
+        if served.camera_error:
+            print(f"  camera: not published ({served.camera_error})")
+        print("  Ctrl-C to stop")
 
-
-def _start_mocap(lab: Any, config: Any) -> Any:
-    """Publish the vehicle's pose as mocap on the bus, in the mocap frame of ``[mocap.T_world_mocap]``."""
-    from flightkit.bus.keys import Keys
-    from flightkit.bus.session import open_session
-    from flightkit.sim.mocap_publisher import SimMocapPublisher
-
-    session = open_session(config.bus)
-    clock = lab.clock
-    publisher = SimMocapPublisher(
-        session,
-        Keys(config.vehicle.namespace),
-        config.mocap.body,
-        truth=lambda: (clock.time_ns(), lab.T_world_body()),
-        clock=clock,
-        T_world_mocap=config.mocap.T_world_mocap.to_transform(),
-        rate_hz=config.sim.mocap_rate_hz,
-        noise_m=config.sim.mocap_noise_m,
-    ).start()
-    print(
-        f"  mocap: body {config.mocap.body!r} at {config.sim.mocap_rate_hz:g} Hz on {publisher.key} "
-        "(PoseStamped in the mocap frame)"
-    )
-    return _Closing(publisher, session)
-
-
-class _Closing:
-    """Stops a publisher, then closes the bus session it used."""
-
-    def __init__(self, publisher: Any, session: Any) -> None:
-        self.publisher, self.session = publisher, session
-
-    def stop(self) -> None:
-        self.publisher.stop()
-        self.session.close()
-
-
-def _start_camera(lab: Any, config: Any) -> Any:
-    """Publish the simulated camera (capture.sources.sim) on the bus; None if it cannot start."""
+    stop = threading.Event()
     try:
-        from capture.sources.sim import start_sim_camera
-
-        camera = start_sim_camera(lab, config)
-    except Exception as exc:  # the sim itself still runs without the camera
-        print(f"  camera: not published ({exc})")
-        return None
-    print(
-        f"  camera: {config.camera.width_px}x{config.camera.height_px} at {config.camera.rate_hz:g} Hz on "
-        f"{', '.join(camera.publisher.keys)}"
-    )
-    return camera
+        serve_sim_lab(
+            config,
+            options,
+            stop,
+            autopilot=args.autopilot,
+            mocap=not args.no_mocap,
+            camera=not args.no_camera,
+            on_event=show,
+            on_ready=ready,
+        )
+    except KeyboardInterrupt:
+        print("flightkit sim: stopping")
+    return 0

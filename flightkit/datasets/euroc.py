@@ -28,13 +28,22 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from flightkit.bus.msgs import CameraInfo
 from flightkit.datasets.base import CameraIntrinsics, SequenceKind, StereoRectification
 from flightkit.datasets.files import FileSequence, FrameFiles, poses_at, require
 from flightkit.datasets.trajectory import Trajectory, associate, read_tum
 from flightkit.errors import DatasetError
 from flightkit.frames import Transform
 
-__all__ = ["EurocCamera", "is_euroc_folder", "open_euroc", "read_euroc_camera", "stereo_rectification"]
+__all__ = [
+    "EurocCamera",
+    "euroc_sensor_yaml",
+    "is_euroc_folder",
+    "open_euroc",
+    "read_euroc_camera",
+    "stereo_rectification",
+    "write_euroc_groundtruth",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -247,3 +256,59 @@ def _rot4(R: np.ndarray) -> np.ndarray:  # noqa: N803
     m = np.eye(4)
     m[:3, :3] = R
     return m
+
+
+# --------------------------------------------------------------------------- writing
+
+
+def euroc_sensor_yaml(
+    info: CameraInfo, T_body_camera: Transform, rate_hz: float, comment: str, time_offset_s: float | None = None  # noqa: N803
+) -> str:
+    """A camera's ``sensor.yaml`` (``T_BS`` = ``T_body_camera``, pinhole, radial-tangential), with
+    the camera-to-body time offset when it was measured (``timeshift_cam_imu`` as Kalibr names it)."""
+    k = info.k
+    d = (list(info.d) + [0.0] * 4)[:4]
+    T = T_body_camera.as_matrix().reshape(-1)  # noqa: N806
+    text = (
+        "%YAML:1.0\n"
+        "# General sensor definitions.\n"
+        "sensor_type: camera\n"
+        f"comment: {comment}\n\n"
+        "# Sensor extrinsics wrt. the body-frame.\n"
+        "T_BS:\n  cols: 4\n  rows: 4\n"
+        "  data: [" + ", ".join(repr(float(v)) for v in T) + "]\n\n"
+        "# Camera specific definitions.\n"
+        f"rate_hz: {rate_hz:.6g}\n"
+        f"resolution: [{info.width}, {info.height}]\n"
+        "camera_model: pinhole\n"
+        f"intrinsics: [{k[0]!r}, {k[4]!r}, {k[2]!r}, {k[5]!r}] #fu, fv, cu, cv\n"
+        "distortion_model: radial-tangential\n"
+        "distortion_coefficients: [" + ", ".join(repr(float(v)) for v in d) + "]\n"
+    )
+    if time_offset_s is not None:
+        text += f"timeshift_cam_imu: {time_offset_s!r} # s, t_body = t_camera + timeshift\n"
+    return text
+
+
+def write_euroc_groundtruth(folder: Path, body_traj: Trajectory) -> None:
+    """``state_groundtruth_estimate0/``: ``data.csv`` (17 columns as EuRoC; velocities from the
+    positions, biases zero) and its ``sensor.yaml``."""
+    folder.mkdir(parents=True, exist_ok=True)
+    t_s = (body_traj.stamps_ns - body_traj.stamps_ns[0]) * 1e-9
+    vel = np.gradient(body_traj.positions, t_s, axis=0) if len(body_traj) > 1 else np.zeros((len(body_traj), 3))
+    header = (
+        "#timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], q_RS_y [], q_RS_z [], "
+        "v_RS_R_x [m s^-1], v_RS_R_y [m s^-1], v_RS_R_z [m s^-1], b_w_RS_S_x [rad s^-1], "
+        "b_w_RS_S_y [rad s^-1], b_w_RS_S_z [rad s^-1], b_a_RS_S_x [m s^-2], b_a_RS_S_y [m s^-2], "
+        "b_a_RS_S_z [m s^-2]\n"
+    )
+    lines = [
+        f"{int(t)}," + ",".join(f"{v:.9f}" for v in (*p, *q, *v)) + ",0,0,0,0,0,0\n"
+        for t, p, q, v in zip(body_traj.stamps_ns, body_traj.positions, body_traj.quats_wxyz, vel, strict=True)
+    ]
+    (folder / "data.csv").write_text(header + "".join(lines))
+    (folder / "sensor.yaml").write_text(
+        "%YAML:1.0\nsensor_type: visual-inertial\ncomment: mocap body pose exported by flightkit\n"
+        "T_BS:\n  cols: 4\n  rows: 4\n  data: [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, "
+        "0.0, 0.0, 0.0, 1.0]\n"
+    )

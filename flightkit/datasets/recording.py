@@ -13,15 +13,16 @@ else any non-depth camera); depth is the camera named ``depth`` (16UC1 in millim
 stamped with their header stamps; depth and right images are attached when their stamp
 lies within ``max_diff_s`` (20 ms).
 
-Ground truth: the mocap body poses (``T_mocap_body``); ``groundtruth()`` gives
-``T_world_camera = T_world_mocap @ T_mocap_body @ T_body_camera`` with both transforms given
-by the caller (identity by default, i.e. the body trajectory in the mocap frame).
+Ground truth, in the world frame: the mocap body poses placed in the world by the frame each
+names (``T_world_mocap`` from the recording's metadata, see
+:class:`~flightkit.datasets.mcap_reader.RecordingReader`), through the camera's extrinsics:
+``T_world_camera = T_world_body @ T_body_camera``. Both transforms come from the recording
+unless the caller gives them.
 """
 
 from __future__ import annotations
 
 import logging
-import re
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -29,31 +30,35 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from flightkit.bus.cdr import CdrReader
-from flightkit.bus.msgs import CameraInfo, CompressedImage, Header, Image, PoseStamped
+from flightkit.bus.msgs import CameraInfo
 from flightkit.datasets.base import CameraIntrinsics, Frame, SequenceKind, StereoRectification
 from flightkit.datasets.files import poses_at
+from flightkit.datasets.mcap_reader import RecordingReader, decode_image, header_stamp_ns
 from flightkit.datasets.trajectory import Trajectory, associate
 from flightkit.errors import DatasetError
-from flightkit.frames import Transform, quat_xyzw_to_wxyz
+from flightkit.frames import Transform
 
 __all__ = ["McapSequence", "open_mcap"]
 
 logger = logging.getLogger(__name__)
 
-_CAMERA = re.compile(r"camera/([^/]+)/(image|image/compressed|camera_info)$")
-_MOCAP = re.compile(r"mocap/([^/]+)/pose$")
 _MAIN_PREFERENCE = ("color", "left", "gray", "infra1", "image")
 
 
-def _reader(fh):  # type: ignore[no-untyped-def]
-    from mcap.reader import make_reader
-
-    return make_reader(fh)
-
-
 class McapSequence:
-    """:class:`~flightkit.datasets.base.Sequence` over an MCAP recording (see the module docstring)."""
+    """:class:`~flightkit.datasets.base.Sequence` over an MCAP recording (see the module docstring).
+
+    Args:
+        path: the recording.
+        camera: the main camera's name (default: the first of color, left, gray, infra1, image).
+        mocap_body: the ground-truth body (default: the recording's own, else the first).
+        T_world_mocap: overrides the recording's mocap frame in the world.
+        T_body_camera: overrides the recording's extrinsics (identity when it has none).
+        max_diff_s: depth and right images are attached within this of the main image.
+
+    Raises:
+        DatasetError: unreadable recording, no camera, no intrinsics, unknown body.
+    """
 
     def __init__(
         self,
@@ -69,24 +74,8 @@ class McapSequence:
         self.kind = SequenceKind.MCAP
         self.rectification: StereoRectification | None = None
         self._max_diff_ns = round(max_diff_s * 1e9)
-        try:
-            with path.open("rb") as fh:
-                summary = _reader(fh).get_summary()
-        except Exception as exc:  # mcap raises several exception types for damaged files
-            raise DatasetError(
-                f"recording {path} cannot be read as MCAP ({exc}); if it was cut short, run "
-                "`flightkit capture recover` first"
-            ) from exc
-        if summary is None:
-            raise DatasetError(f"recording {path} has no summary section; recover it first")
-        cams: dict[str, dict[str, str]] = {}
-        mocap: dict[str, str] = {}
-        for ch in summary.channels.values():
-            topic = ch.topic.lstrip("/")
-            if m := _CAMERA.search(topic):
-                cams.setdefault(m.group(1), {})[m.group(2)] = ch.topic
-            elif m := _MOCAP.search(topic):
-                mocap[m.group(1)] = ch.topic
+        self.reader = RecordingReader(path)
+        cams = self.reader.cameras()
         image_cams = {n: t for n, t in cams.items() if "image" in t or "image/compressed" in t}
         if not image_cams:
             raise DatasetError(f"recording {path} lacks camera image topics (…/camera/<name>/image)")
@@ -105,49 +94,34 @@ class McapSequence:
             self._topics["depth"] = _image_topic(image_cams["depth"])
         if "right" in image_cams and camera != "right":
             self._topics["right"] = _image_topic(image_cams["right"])
-        self._index(path, cams, camera, mocap, mocap_body)
-        T_wm = T_world_mocap or Transform()  # noqa: N806
-        T_bc = T_body_camera or Transform()  # noqa: N806
+        calib = self.reader.calibration()
+        self.T_body_camera = T_body_camera or calib.T_body_camera or Transform()
+        self._index(path, cams, camera)
         self._gt: Trajectory | None = None
-        if self._mocap_traj is not None:
-            self._gt = self._mocap_traj.left_multiplied(T_wm).right_multiplied(T_bc).renamed("groundtruth")
-
-    # ------------------------------------------------------------------ indexing
-    def _index(
-        self,
-        path: Path,
-        cams: dict[str, dict[str, str]],
-        camera: str,
-        mocap: dict[str, str],
-        body: str | None,
-    ) -> None:
-        info_topics = {n: t["camera_info"] for n, t in cams.items() if "camera_info" in t}
+        mocap = self.reader.mocap_topics()
+        body = mocap_body or (calib.mocap_body if calib.mocap_body in mocap else None)
         if body is None and mocap:
             body = sorted(mocap)[0]
         if body is not None and body not in mocap:
-            raise DatasetError(
-                f"recording {path} has no mocap body {body!r}; it has {sorted(mocap) or 'none'}"
-            )
-        mocap_topic = mocap.get(body) if body else None
-        wanted = (
-            set(self._topics.values()) | set(info_topics.values()) | ({mocap_topic} if mocap_topic else set())
-        )
+            raise DatasetError(f"recording {path} has no mocap body {body!r}; it has {sorted(mocap) or 'none'}")
+        self.mocap_body = body
+        if body is not None:
+            frames = self.reader.world_frames(T_world_mocap)
+            body_traj = self.reader.pose_trajectory(mocap[body], frames, name=f"mocap {body}")
+            self._gt = body_traj.right_multiplied(self.T_body_camera).renamed("groundtruth")
+
+    # ------------------------------------------------------------------ indexing
+    def _index(self, path: Path, cams: dict[str, dict[str, str]], camera: str) -> None:
+        info_topics = {n: t["camera_info"] for n, t in cams.items() if "camera_info" in t}
         stamps: dict[str, list[int]] = {k: [] for k in self._topics}
-        infos: dict[str, CameraInfo] = {}
-        poses: list[PoseStamped] = []
         role_of = {t: k for k, t in self._topics.items()}
-        info_role = {t: n for n, t in info_topics.items()}
-        with path.open("rb") as fh:
-            for _schema, channel, message in _reader(fh).iter_messages(
-                topics=sorted(wanted), log_time_order=True
-            ):
-                topic = channel.topic
-                if topic in role_of:
-                    stamps[role_of[topic]].append(_stamp_of(channel.topic, message.data))
-                elif topic in info_role and info_role[topic] not in infos:
-                    infos[info_role[topic]] = CameraInfo.decode(message.data)
-                elif topic == mocap_topic:
-                    poses.append(PoseStamped.decode(message.data))
+        for m in self.reader.messages(sorted(self._topics.values())):
+            stamps[role_of[m.topic]].append(header_stamp_ns(m.data))
+        infos: dict[str, CameraInfo] = {}
+        for name, topic in info_topics.items():
+            info = self.reader.first_camera_info(topic)
+            if info is not None:
+                infos[name] = info
         self._stamps = {k: np.array(v, dtype=np.int64) for k, v in stamps.items()}
         main = self._stamps["main"]
         if main.size == 0:
@@ -172,15 +146,6 @@ class McapSequence:
         if "right" in self._topics and "right" in infos:
             p = infos["right"].p
             self.baseline_m = float(-p[3] / p[0]) if p[0] else None
-        self._mocap_traj = None
-        if poses:
-            poses.sort(key=lambda m: m.header.stamp_ns)
-            self._mocap_traj = Trajectory(
-                np.array([m.header.stamp_ns for m in poses], dtype=np.int64),
-                np.array([m.position_m for m in poses]),
-                quat_xyzw_to_wxyz(np.array([m.quat_xyzw for m in poses])),
-                f"mocap {body}",
-            )
         logger.debug("indexed %s: %d frames, topics %s", path, main.size, self._topics)
 
     # ------------------------------------------------------------------ protocol
@@ -215,27 +180,20 @@ class McapSequence:
             poses_at(self._gt, self._stamps["main"], self._max_diff_ns) if self._gt is not None else None
         )
         pos = 0
-        with self.path.open("rb") as fh:
-            for _schema, channel, message in _reader(fh).iter_messages(
-                topics=sorted(self._topics.values()), log_time_order=True
-            ):
-                role = role_of[channel.topic]
-                k = counters[role]
-                counters[role] += 1
-                idx = k if role == "main" else self._links.get(role, {}).get(k)
-                if idx is None or idx not in wanted or idx < order[pos]:
-                    continue
-                pending.setdefault(idx, {})[role] = _decode_image(channel.topic, message.data)
-                while (
-                    pos < len(order)
-                    and order[pos] in pending
-                    and self._complete(order[pos], pending[order[pos]])
-                ):
-                    i = order[pos]
-                    yield self._frame(i, pending.pop(i), gt_poses)
-                    pos += 1
-                if pos == len(order):
-                    return
+        for m in self.reader.messages(sorted(self._topics.values())):
+            role = role_of[m.topic]
+            k = counters[role]
+            counters[role] += 1
+            idx = k if role == "main" else self._links.get(role, {}).get(k)
+            if idx is None or idx not in wanted or idx < order[pos]:
+                continue
+            pending.setdefault(idx, {})[role] = decode_image(m.topic, m.data).bgr()
+            while pos < len(order) and order[pos] in pending and self._complete(order[pos], pending[order[pos]]):
+                i = order[pos]
+                yield self._frame(i, pending.pop(i), gt_poses)
+                pos += 1
+            if pos == len(order):
+                return
         for i in order[pos:]:  # frames whose partner images never arrived
             if i in pending and "main" in pending[i]:
                 yield self._frame(i, pending.pop(i), gt_poses)
@@ -278,29 +236,6 @@ class McapSequence:
 
 def _image_topic(topics: dict[str, str]) -> str:
     return topics.get("image") or topics["image/compressed"]
-
-
-def _stamp_of(topic: str, data: bytes) -> int:
-    """The header stamp of any stamped message, without decoding the rest."""
-    return Header.read(CdrReader(data)).stamp_ns
-
-
-def _decode_image(topic: str, data: bytes) -> npt.NDArray[np.generic]:
-    if topic.endswith("/compressed"):
-        payload = CompressedImage.decode(data).data
-        img = cv2.imdecode(np.frombuffer(payload, np.uint8), cv2.IMREAD_UNCHANGED)
-        if img is None:
-            raise DatasetError(f"a compressed image on {topic} cannot be decoded")
-        return np.asarray(img)
-    msg = Image.decode(data)
-    arr = msg.array()
-    if msg.encoding in ("rgb8",):
-        arr = cv2.cvtColor(arr, cv2.COLOR_RGB2BGR)
-    elif msg.encoding in ("bgra8",):
-        arr = cv2.cvtColor(arr, cv2.COLOR_BGRA2BGR)
-    elif msg.encoding in ("rgba8",):
-        arr = cv2.cvtColor(arr, cv2.COLOR_RGBA2BGR)
-    return np.asarray(arr)
 
 
 def _intrinsics(info: CameraInfo) -> CameraIntrinsics:

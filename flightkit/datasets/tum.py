@@ -13,9 +13,14 @@ default); depth is registered to colour and stored as uint16 with 5000 units per
 (0 = no data). The per-frame ground truth is the mocap pose interpolated at the colour
 stamp when a mocap sample lies within 20 ms.
 
-Intrinsics are not stored in the folder; they are chosen from the folder name
+Intrinsics are not stored in TUM's own folders; they are taken from a ``camera.yaml`` when
+the folder has one (folders flightkit exports write it), else chosen from the folder name
 (``freiburg1/2/3``, TUM's published calibration) unless given explicitly, with the ROS
 default 525/525/319.5/239.5 for an unknown sensor.
+
+Writing (what ``flightkit export --format tum`` uses): :func:`tum_associate` (TUM's
+``associate.py``), :func:`to_tum_depth`, :func:`write_tum_camera_yaml` and
+:func:`read_tum_camera_yaml`.
 
 TUM pair layout (known-answer fixtures, e.g. ``tum_fr1xyz_pairs/case_1``)::
 
@@ -29,9 +34,13 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import Any
 
+import cv2
 import numpy as np
+import numpy.typing as npt
 
+from flightkit.bus.msgs import CameraInfo
 from flightkit.datasets.base import CameraIntrinsics, SequenceKind
 from flightkit.datasets.files import FileSequence, FrameFiles, poses_at, require
 from flightkit.datasets.trajectory import Trajectory, associate, parse_stamp_ns, read_tum
@@ -39,17 +48,24 @@ from flightkit.errors import DatasetError
 from flightkit.frames import Transform
 
 __all__ = [
+    "TUM_DEPTH_FACTOR",
     "TUM_INTRINSICS",
     "is_tum_folder",
     "is_tum_pair_folder",
     "open_tum",
     "open_tum_pair",
+    "read_tum_camera_yaml",
+    "to_tum_depth",
+    "tum_associate",
     "tum_intrinsics",
+    "write_tum_camera_yaml",
 ]
 
 logger = logging.getLogger(__name__)
 
-TUM_DEPTH_SCALE_M = 1.0 / 5000.0
+TUM_DEPTH_FACTOR = 5000.0
+"""Depth units per metre in TUM RGB-D depth PNGs."""
+TUM_DEPTH_SCALE_M = 1.0 / TUM_DEPTH_FACTOR
 _ASSOC_MAX_NS = 20_000_000
 
 # TUM's published colour-camera calibration (the Kinects are 640x480).
@@ -150,6 +166,8 @@ def open_tum(path: Path, intrinsics: CameraIntrinsics | None = None, with_depth:
         FrameFiles(int(rgb_stamps[i]), rgb_files[i], depth=depth_idx.get(int(i)), T_world_camera=pose)
         for i, pose in zip(keep, poses, strict=True)
     ]
+    if intrinsics is None and (path / "camera.yaml").is_file():
+        intrinsics = read_tum_camera_yaml(path)
     K = intrinsics or tum_intrinsics(path)  # noqa: N806
     return FileSequence(
         name=path.name,
@@ -231,3 +249,115 @@ def _pair_stamps(path: Path, rows: list[np.ndarray]) -> list[int]:
             return nominal
         found.append(int(gt.stamps_ns[best]))
     return found
+
+
+# --------------------------------------------------------------------------- writing
+
+
+def tum_associate(
+    stamps_a_ns: npt.ArrayLike, stamps_b_ns: npt.ArrayLike, max_diff_ns: int, offset_ns: int = 0
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+    """TUM ``associate.py``: unique pairs ``(i, j)`` with ``|a_i - (b_j + offset)| < max_diff``,
+    taken greedily by increasing difference; returned sorted by ``i``."""
+    a = np.asarray(stamps_a_ns, dtype=np.int64).reshape(-1)
+    b = np.asarray(stamps_b_ns, dtype=np.int64).reshape(-1) + int(offset_ns)
+    if a.size == 0 or b.size == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    order_b = np.argsort(b, kind="stable")
+    bs = b[order_b]
+    lo = np.searchsorted(bs, a - max_diff_ns, side="right")
+    hi = np.searchsorted(bs, a + max_diff_ns, side="left")
+    counts = hi - lo
+    ii = np.repeat(np.arange(a.size), counts)
+    starts = np.repeat(lo, counts)
+    within = np.arange(ii.size) - np.repeat(np.cumsum(counts) - counts, counts)
+    jj_sorted = starts + within
+    diffs = np.abs(a[ii] - bs[jj_sorted])
+    order = np.lexsort((jj_sorted, ii, diffs))
+    used_a = np.zeros(a.size, bool)
+    used_b = np.zeros(b.size, bool)
+    out_i: list[int] = []
+    out_j: list[int] = []
+    for k in order:
+        i, js = int(ii[k]), int(jj_sorted[k])
+        if used_a[i] or used_b[js]:
+            continue
+        used_a[i] = used_b[js] = True
+        out_i.append(i)
+        out_j.append(int(order_b[js]))
+    idx = np.argsort(out_i)
+    return np.asarray(out_i, np.int64)[idx], np.asarray(out_j, np.int64)[idx]
+
+
+def to_tum_depth(arr: npt.NDArray[Any], encoding: str) -> npt.NDArray[np.uint16]:
+    """A depth image (16UC1 millimetres or 32FC1 metres) as TUM depth (uint16, 5000 per metre, 0 = none).
+
+    Raises:
+        DatasetError: another encoding.
+    """
+    if encoding in ("16UC1", "mono16"):
+        scaled = arr.astype(np.float32) * np.float32(TUM_DEPTH_FACTOR / 1000.0)  # mm -> 1/5000 m
+    elif encoding == "32FC1":
+        scaled = np.nan_to_num(arr.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0) * np.float32(TUM_DEPTH_FACTOR)
+    else:
+        raise DatasetError(f"depth encoding {encoding!r} cannot be exported; expected 16UC1 (mm) or 32FC1 (m)")
+    return np.clip(np.rint(scaled), 0, 65535).astype(np.uint16)
+
+
+def write_tum_camera_yaml(path: Path, info: CameraInfo, right: CameraInfo | None = None) -> None:
+    """Write ``camera.yaml`` (OpenCV FileStorage, ORB-SLAM style keys, DepthMapFactor 5000)."""
+    k = info.k
+    d = list(info.d) + [0.0] * (5 - len(info.d))
+    lines = [
+        "%YAML:1.0",
+        "---",
+        "# Camera calibration (pinhole, OpenCV plumb_bob distortion), exported by flightkit",
+        'Camera.type: "PinHole"',
+        f"Camera.fx: {k[0]!r}",
+        f"Camera.fy: {k[4]!r}",
+        f"Camera.cx: {k[2]!r}",
+        f"Camera.cy: {k[5]!r}",
+        f"Camera.k1: {d[0]!r}",
+        f"Camera.k2: {d[1]!r}",
+        f"Camera.p1: {d[2]!r}",
+        f"Camera.p2: {d[3]!r}",
+        f"Camera.k3: {d[4]!r}",
+        f"Camera.width: {info.width}",
+        f"Camera.height: {info.height}",
+        "Camera.RGB: 1",
+        f"DepthMapFactor: {TUM_DEPTH_FACTOR!r}",
+    ]
+    if right is not None and right.p[0]:
+        lines.append(f"Camera.bf: {-right.p[3]!r}")
+    path.write_text("\n".join(lines) + "\n")
+
+
+def read_tum_camera_yaml(folder: str | Path) -> CameraIntrinsics:
+    """The intrinsics in a TUM folder's ``camera.yaml`` (as :func:`write_tum_camera_yaml` writes it).
+
+    Raises:
+        DatasetError: the file is missing or incomplete.
+    """
+    path = Path(folder) / "camera.yaml"
+    if not path.is_file():
+        raise DatasetError(f"{path} does not exist; export the folder with 'flightkit export --format tum'")
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    try:
+        vals = {
+            k: fs.getNode(f"Camera.{k}")
+            for k in ("fx", "fy", "cx", "cy", "width", "height", "k1", "k2", "p1", "p2", "k3")
+        }
+        if any(vals[k].empty() for k in ("fx", "fy", "cx", "cy", "width", "height")):
+            raise DatasetError(f"{path} lacks Camera.fx/fy/cx/cy/width/height; re-export the folder")
+        dist = tuple(vals[k].real() for k in ("k1", "k2", "p1", "p2", "k3") if not vals[k].empty())
+        return CameraIntrinsics(
+            vals["fx"].real(),
+            vals["fy"].real(),
+            vals["cx"].real(),
+            vals["cy"].real(),
+            int(vals["width"].real()),
+            int(vals["height"].real()),
+            dist if any(dist) else (),
+        )
+    finally:
+        fs.release()

@@ -1,8 +1,10 @@
-"""Motion-capture sources: timestamped rigid-body poses in the world frame.
+"""Motion capture: timestamped rigid-body poses, measured in a named frame and served in the world frame.
 
-Every backend maps the mocap system's own frame into the world frame through
-``T_world_mocap`` (from config) before a pose leaves it, so consumers only ever see
-``T_world_body``.
+A backend (a mocap system, the bus, the simulator, the autopilot's own estimate) measures
+:class:`MocapSample` values in the frame it names (``frame_id``, usually ``"mocap"``); the one
+adapter, :class:`~flightkit.mocap.source.WorldFrameSource`, places them in the world through
+:class:`~flightkit.frames.WorldFrames` and hands out :class:`MocapPose` values, so consumers only
+ever see ``T_world_body``.
 """
 
 from __future__ import annotations
@@ -14,12 +16,36 @@ from typing import Protocol, Self, runtime_checkable
 
 from flightkit.frames import Transform
 
-__all__ = ["MocapPose", "MocapSource"]
+__all__ = ["MocapPose", "MocapSample", "MocapSource"]
+
+
+@dataclass(frozen=True, slots=True)
+class MocapSample:
+    """One rigid-body pose as a backend measured it.
+
+    Attributes:
+        stamp_ns: capture time, ns since the Unix epoch (the source clock's ``time_ns``).
+        body: rigid-body name.
+        frame_id: the frame ``T_frame_body`` is in (``"mocap"``, ``"world"``, or another frame
+            the source's :class:`~flightkit.frames.WorldFrames` knows).
+        T_frame_body: the pose in ``frame_id``; None when the system lost the body.
+        valid: False when the body is occluded or untracked (the pose must not be flown on).
+        seq: per-body sequence number from the system (gaps mean missed frames).
+        received_s: ``Clock.monotonic_s`` when it arrived (for staleness checks).
+    """
+
+    stamp_ns: int
+    body: str
+    frame_id: str
+    T_frame_body: Transform | None
+    valid: bool = True
+    seq: int = 0
+    received_s: float = 0.0
 
 
 @dataclass(frozen=True, slots=True)
 class MocapPose:
-    """One rigid-body pose.
+    """One rigid-body pose in the world frame.
 
     Attributes:
         stamp_ns: capture time, ns since the Unix epoch (the source clock's ``time_ns``).
@@ -29,6 +55,8 @@ class MocapPose:
             then the last known one and must not be flown on).
         seq: per-body sequence number from the source (gaps mean missed frames).
         received_s: ``Clock.monotonic_s`` when we received it (for staleness checks).
+        T_mocap_body: the same pose in the mocap system's own frame, as measured (what a
+            bridge or a recorder publishes with ``frame_id "mocap"``).
     """
 
     stamp_ns: int
@@ -37,11 +65,12 @@ class MocapPose:
     valid: bool = True
     seq: int = 0
     received_s: float = 0.0
+    T_mocap_body: Transform | None = None
 
 
 @runtime_checkable
 class MocapSource(Protocol):
-    """A stream of rigid-body poses. Use as ``async with source:``."""
+    """A stream of rigid-body poses in the world frame. Use as ``async with source:``."""
 
     def bodies(self) -> tuple[str, ...]:
         """Names of the bodies seen so far; returns immediately."""
@@ -52,7 +81,7 @@ class MocapSource(Protocol):
         ...
 
     async def wait_for_body(self, body: str, timeout_s: float) -> MocapPose:
-        """Wait until ``body`` has a valid pose; MocapBodyMissing (naming visible bodies) otherwise."""
+        """Wait until ``body`` has a valid, fresh pose; MocapBodyMissing (naming visible bodies) otherwise."""
         ...
 
     def poses(self, body: str | None = None) -> AsyncIterator[MocapPose]:

@@ -7,6 +7,7 @@ from typing import Any
 from flightkit.bus.keys import Keys
 from flightkit.clock import Clock
 from flightkit.config import BusConfig, MocapConfig, MocapSourceKind
+from flightkit.frames import WorldFrames
 from flightkit.mocap.base import MocapSource
 
 __all__ = ["open_mocap"]
@@ -26,17 +27,15 @@ def open_mocap(
     Raises:
         BusError: the bus session cannot be opened.
     """
-    T_world_mocap = cfg.T_world_mocap.to_transform()
+    frames = WorldFrames(cfg.T_world_mocap.to_transform())
     if cfg.source is MocapSourceKind.MOTIONCAPTURE:
         from flightkit.mocap.motioncapture_source import MotionCaptureSource
 
-        return MotionCaptureSource(
-            cfg.system_type, clock, hostname=cfg.hostname, options=cfg.options, T_world_mocap=T_world_mocap
-        )
+        return MotionCaptureSource(cfg.system_type, clock, hostname=cfg.hostname, options=cfg.options, frames=frames)
     from flightkit.bus.session import open_session
     from flightkit.mocap.bus_source import BusMocapSource
 
     owns = session is None
     if session is None:
         session = open_session(bus_cfg)
-    return BusMocapSource(session, keys, clock, T_world_mocap, owns_session=owns)
+    return BusMocapSource(session, keys, clock, frames, owns_session=owns)

@@ -12,7 +12,8 @@ can still freeze ``connect``.
 Per body: ``seq`` counts the frames it appeared in, ``stamp_ns``/``received_s`` come from
 the injected clock when the frame arrived (the Python binding exposes no system
 timestamps), and a body that disappears from a frame, or comes with NaN, is stored once as
-``valid=False`` with its last known pose.
+``valid=False`` with its last known pose. Poses are measured in the mocap frame and placed
+in the world by :class:`~flightkit.mocap.source.WorldFrameSource`.
 """
 
 from __future__ import annotations
@@ -23,16 +24,15 @@ import math
 import socket
 import threading
 from collections.abc import Mapping, Sequence
-from types import TracebackType
-from typing import Any, Self
+from typing import Any
 
 import numpy as np
 
 from flightkit.clock import Clock
 from flightkit.errors import MocapError
-from flightkit.frames import Transform
-from flightkit.mocap.base import MocapPose
-from flightkit.mocap.store import PoseStore, StoreBackedSource
+from flightkit.frames import MOCAP_FRAME_ID, Transform, WorldFrames
+from flightkit.mocap.base import MocapSample
+from flightkit.mocap.source import WorldFrameSource
 
 __all__ = ["MotionCaptureSource", "mock_rigid_bodies"]
 
@@ -73,7 +73,7 @@ def mock_rigid_bodies(bodies: Mapping[str, Transform]) -> str:
     return ";".join(parts)
 
 
-class MotionCaptureSource(StoreBackedSource):
+class MotionCaptureSource(WorldFrameSource):
     """A :class:`~flightkit.mocap.base.MocapSource` backed by ``motioncapture.connect``.
 
     Args:
@@ -82,7 +82,7 @@ class MotionCaptureSource(StoreBackedSource):
         clock: stamps frames and runs timeouts.
         hostname: the mocap server (ignored by ``mock``).
         options: extra library options; values are converted to strings.
-        T_world_mocap: the mocap frame in the world.
+        frames: where the mocap frame sits in the world (``T_world_mocap`` from config).
         connect_timeout_s: how long entering waits for the first frame (clock time).
         bodies: only report these bodies (None: all).
     """
@@ -94,20 +94,18 @@ class MotionCaptureSource(StoreBackedSource):
         *,
         hostname: str = "",
         options: Mapping[str, Any] | None = None,
-        T_world_mocap: Transform | None = None,
+        frames: WorldFrames | None = None,
         connect_timeout_s: float = 5.0,
         bodies: Sequence[str] | None = None,
     ) -> None:
+        super().__init__(clock, frames or WorldFrames(), name=f"motioncapture {system_type}")
         self.system_type = system_type
-        self.clock = clock
         self.hostname = hostname
         self.options = {str(k): str(v) for k, v in (options or {}).items()}
         if hostname:
             self.options.setdefault("hostname", hostname)
-        self.T_world_mocap = T_world_mocap or Transform.identity()
         self.connect_timeout_s = connect_timeout_s
         self._only = set(bodies) if bodies else None
-        self._store = PoseStore(clock, name=f"motioncapture {system_type}")
         self._stop = threading.Event()
         self._first_frame = threading.Event()
         self._thread: threading.Thread | None = None
@@ -132,7 +130,7 @@ class MotionCaptureSource(StoreBackedSource):
         except Exception as exc:  # libmotioncapture raises RuntimeError for connection problems
             if not self._stop.is_set():
                 logger.error("motioncapture %s stopped: %s", self._describe(), exc)
-                self._store.fail(
+                self._fail(
                     MocapError(
                         f"motioncapture {self._describe()} failed: {exc}; check system_type, hostname and options"
                     )
@@ -153,35 +151,30 @@ class MotionCaptureSource(StoreBackedSource):
             norm = float(np.linalg.norm(quat_wxyz))
             seq = self._seq.get(name, 0) + 1
             self._seq[name] = seq
+            T_mocap_body = None  # noqa: N806
             if pos.shape == (3,) and np.all(np.isfinite(pos)) and math.isfinite(norm) and norm > 0.5:
-                T_mocap_body = Transform.from_quat_wxyz(pos, quat_wxyz / norm)
-                pose = MocapPose(stamp_ns, name, self.T_world_mocap @ T_mocap_body, True, seq, received_s)
+                T_mocap_body = Transform.from_quat_wxyz(pos, quat_wxyz / norm)  # noqa: N806
                 seen.add(name)
-            else:
-                pose = self._invalid(name, stamp_ns, seq, received_s)
-            self._store.update(pose)
+            self._ingest(MocapSample(stamp_ns, name, MOCAP_FRAME_ID, T_mocap_body, T_mocap_body is not None, seq,
+                                     received_s))
         for name in self._present - seen:
             if name not in rigid_bodies:  # gone from the frame (NaN bodies were stored above)
-                self._store.update(self._invalid(name, stamp_ns, self._seq.get(name, 0), received_s))
+                self._ingest(MocapSample(stamp_ns, name, MOCAP_FRAME_ID, None, False, self._seq.get(name, 0),
+                                         received_s))
         self._present = seen
         self._first_frame.set()
 
-    def _invalid(self, name: str, stamp_ns: int, seq: int, received_s: float) -> MocapPose:
-        prev = self._store.latest(name)
-        T = prev.T_world_body if prev is not None else Transform.identity()
-        return MocapPose(stamp_ns, name, T, False, seq, received_s)
-
     # -- lifecycle
-    async def start(self) -> Self:
+    async def _open(self) -> None:
         """Start the thread and wait for the first frame.
 
         Raises:
             MocapError: no frame within ``connect_timeout_s`` (the thread is abandoned), or
                 the library refused the connection.
         """
-        if self._thread is not None:
-            return self
         await asyncio.to_thread(_probe_tcp, self.system_type, self.hostname, min(2.0, self.connect_timeout_s))
+        self._stop = threading.Event()
+        self._first_frame = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"motioncapture-{self.system_type}", daemon=True)
         self._thread.start()
         step_s = min(0.01, self.connect_timeout_s)
@@ -197,24 +190,14 @@ class MotionCaptureSource(StoreBackedSource):
             waited_s += step_s
         self._store.check_failed()
         logger.info("motioncapture %s streaming, bodies: %s", self._describe(), ", ".join(self.bodies()) or "none")
-        return self
 
-    def close(self) -> None:
-        """Ask the thread to stop (it exits after its current wait) and end iterators; idempotent."""
+    async def _close(self) -> None:
+        """Ask the thread to stop (it exits after its current wait); a stalled
+        ``waitForNextFrame`` never returns, so the daemon thread is abandoned after 0.2 s."""
         self._stop.set()
-        self._store.close()
-        thread = self._thread
+        thread, self._thread = self._thread, None
         if thread is not None and thread.is_alive():
-            thread.join(timeout=0.2)  # a stalled waitForNextFrame never returns: the daemon is abandoned
-
-    async def __aenter__(self) -> Self:
-        return await self.start()
-
-    async def __aexit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.close()
-        await asyncio.sleep(0)
+            await asyncio.to_thread(thread.join, 0.2)
 
     def __repr__(self) -> str:
         return f"MotionCaptureSource({self._describe()!r}, bodies={list(self.bodies())})"

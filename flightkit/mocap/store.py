@@ -1,9 +1,13 @@
 """The shared state behind every mocap source: latest pose per body, waiters, streams.
 
 Backends receive frames on their own threads (a Zenoh callback, the motioncapture
-thread) and call :meth:`PoseStore.update`; coroutines on any event loop read the latest
-poses, wait for a body, or iterate over new poses. Hand-over to asyncio goes through
-``loop.call_soon_threadsafe``; poses of one body come out in the order they were stored.
+thread, the simulator's sampler) and the source stores them with :meth:`PoseStore.update`;
+coroutines on any event loop read the latest poses, wait for a body, or iterate over new
+poses. Hand-over to asyncio goes through ``loop.call_soon_threadsafe``; poses of one body
+come out in the order they were stored.
+
+Freshness, one rule for every source: :meth:`PoseStore.wait_for_body` returns a pose that is
+valid and was received at most ``fresh_within_s`` of clock time ago.
 """
 
 from __future__ import annotations
@@ -18,7 +22,7 @@ from flightkit.clock import Clock
 from flightkit.errors import MocapBodyMissing, MocapError
 from flightkit.mocap.base import MocapPose
 
-__all__ = ["PoseStore", "StoreBackedSource"]
+__all__ = ["PoseStore"]
 
 logger = logging.getLogger(__name__)
 
@@ -43,14 +47,18 @@ class PoseStore:
     """Thread-safe latest-pose table with async waiting.
 
     Args:
-        clock: time source for timeouts (so tests can run on simulated time).
+        clock: time source for timeouts and freshness (so tests can run on simulated time).
         name: the source's name, for messages.
+        fresh_within_s: :meth:`wait_for_body` wants a pose received at most this long ago.
         queue_len: poses buffered per :meth:`poses` iterator before the oldest is dropped.
     """
 
-    def __init__(self, clock: Clock, name: str = "mocap", queue_len: int = 512) -> None:
+    def __init__(self, clock: Clock, name: str = "mocap", fresh_within_s: float = 0.5, queue_len: int = 512) -> None:
+        if not fresh_within_s > 0.0:
+            raise MocapError(f"fresh_within_s {fresh_within_s!r} must be positive; use e.g. 0.5 s")
         self.clock = clock
         self.name = name
+        self.fresh_within_s = float(fresh_within_s)
         self._lock = threading.Lock()
         self._latest: dict[str, MocapPose] = {}
         self._listeners: list[_Listener] = []
@@ -93,6 +101,13 @@ class PoseStore:
             self._closed = True
         self._wake_all()
 
+    def reopen(self) -> None:
+        """Accept poses again after :meth:`close` (a source entered a second time); keeps the
+        latest poses, clears a recorded failure."""
+        with self._lock:
+            self._closed = False
+            self._error = None
+
     def _wake_all(self) -> None:
         with self._lock:
             wake = self._waiters + [(lst.loop, lst.fut) for lst in self._listeners if lst.fut is not None]
@@ -126,11 +141,19 @@ class PoseStore:
         with self._lock:
             return self._latest.get(body)
 
+    def _fresh(self, pose: MocapPose | None) -> bool:
+        return (
+            pose is not None
+            and pose.valid
+            and self.clock.monotonic_s() - pose.received_s <= self.fresh_within_s
+        )
+
     async def wait_for_body(self, body: str, timeout_s: float) -> MocapPose:
-        """Wait (on the store's clock) until ``body`` has a valid pose.
+        """Wait (on the store's clock) until ``body`` has a valid pose received at most
+        ``fresh_within_s`` ago.
 
         Raises:
-            MocapBodyMissing: not seen valid within ``timeout_s``; names the visible bodies.
+            MocapBodyMissing: none within ``timeout_s``; names the visible bodies.
             MocapError: the backend failed.
         """
         loop = asyncio.get_running_loop()
@@ -140,7 +163,7 @@ class PoseStore:
                 with self._lock:
                     self.check_failed()
                     pose = self._latest.get(body)
-                    if pose is not None and pose.valid:
+                    if pose is not None and self._fresh(pose):
                         return pose
                     fut: asyncio.Future[None] = loop.create_future()
                     self._waiters.append((loop, fut))
@@ -152,7 +175,7 @@ class PoseStore:
                         if (loop, fut) in self._waiters:
                             self._waiters.remove((loop, fut))
                     pose = self.latest(body)
-                    if pose is not None and pose.valid:
+                    if pose is not None and self._fresh(pose):
                         return pose
                     break
         finally:
@@ -190,23 +213,3 @@ class PoseStore:
                     self._listeners.remove(lst)
             if lst.dropped:
                 logger.debug("%s: a slow reader of %s dropped %d poses", self.name, body or "all bodies", lst.dropped)
-
-
-class StoreBackedSource:
-    """The reading half of :class:`~flightkit.mocap.base.MocapSource` for a backend whose
-    thread fills a :class:`PoseStore` (kept in ``self._store``)."""
-
-    _store: PoseStore
-
-    def bodies(self) -> tuple[str, ...]:
-        return self._store.bodies()
-
-    def latest(self, body: str) -> MocapPose | None:
-        return self._store.latest(body)
-
-    async def wait_for_body(self, body: str, timeout_s: float) -> MocapPose:
-        """Wait for a valid pose of ``body`` (``timeout_s`` on the clock); MocapBodyMissing otherwise."""
-        return await self._store.wait_for_body(body, timeout_s)
-
-    def poses(self, body: str | None = None) -> AsyncIterator[MocapPose]:
-        return self._store.poses(body)

@@ -13,7 +13,6 @@ Example::
         print("connect to", lab.client_url)
         lab.wait_until(lambda: lab.autopilot.armed, timeout_s=30.0, what="armed")
 """
-
 from __future__ import annotations
 
 import logging
@@ -22,7 +21,6 @@ import threading
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from types import TracebackType
 
 import numpy.typing as npt
 
@@ -30,6 +28,7 @@ from flightkit.clock import ONE_PROCESS_WALL_STEP_S, Clock, SimClock
 from flightkit.config import Autopilot, LabConfig
 from flightkit.errors import LinkTimeout
 from flightkit.frames import Transform
+from flightkit.lifetime import Running
 from flightkit.sim.autopilot import AutopilotOptions, SimAutopilot
 from flightkit.sim.autopilot.server import MAX_TICK_S
 from flightkit.sim.dynamics import DynamicsParams, DynamicsState, QuadDynamics
@@ -57,7 +56,7 @@ class SimEvent:
     detail: str = ""
 
 
-class SimLab:
+class SimLab(Running):
     """A simulated vehicle with its autopilot, on a clock.
 
     Args:
@@ -134,22 +133,6 @@ class SimLab:
         if self._started:
             self.autopilot.stop()
             self._started = False
-
-    def __enter__(self) -> SimLab:
-        return self.start()
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.stop()
-
-    async def __aenter__(self) -> SimLab:
-        return self.start()
-
-    async def __aexit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.stop()
 
     # ------------------------------------------------------------------ endpoints
 

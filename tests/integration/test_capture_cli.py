@@ -15,8 +15,8 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
-from capture.mcapfile import scan
 from flightkit.cli.main import main as flightkit_main
+from flightkit.datasets.mcap_recovery import scan
 from tests.conftest import REPO_ROOT, free_tcp_port
 
 PY = sys.executable

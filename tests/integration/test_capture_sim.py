@@ -15,18 +15,18 @@ from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 
 from capture.config import CaptureConfig
-from capture.export import export_recording, read_tum_calibration
+from capture.export import export_recording
 from capture.session import BusRecorder, recording_metadata
-from capture.sources.sim import SimCameraPublisher
-from capture.streams import has_subscribers
 from flightkit.bus.keys import Keys
 from flightkit.bus.msgs import Image, TFMessage
 from flightkit.bus.session import open_session
 from flightkit.clock import LockstepClock
 from flightkit.config import BusConfig, CameraConfig, LabConfig, load_config
 from flightkit.datasets import open_sequence, read_tum
+from flightkit.datasets.tum import read_tum_camera_yaml
 from flightkit.frames import Transform
-from flightkit.sim.mocap_publisher import SimMocapPublisher
+from flightkit.sim.camera_publisher import SimCameraPublisher
+from flightkit.sim.mocap import SimMocapPublisher, SimMocapSystem
 from tests.conftest import free_tcp_port, wait
 
 MOCAP_HZ = 240
@@ -50,17 +50,23 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, LabConfig
     rec_s = open_session(BusConfig(connect=(f"tcp/127.0.0.1:{port}",)))
     clock = LockstepClock()
     keys = Keys("uav1")
-    lab = load_config(table={"camera": {"width_px": 320, "height_px": 240}, "capture": {"stereo": True}})
-
-    def truth() -> tuple[int, Transform]:
-        return clock.time_ns(), truth_at(clock.monotonic_s())
-
-    cam = SimCameraPublisher(pub_s, keys, truth, lab.camera, clock, capture_cfg=lab.section("capture", CaptureConfig))
-    mocap = SimMocapPublisher(pub_s, keys, "uav1", truth, clock, T_world_mocap=T_WORLD_MOCAP, rate_hz=MOCAP_HZ)
+    x, y, _ = T_WORLD_MOCAP.translation
+    lab = load_config(
+        table={
+            "camera": {"width_px": 320, "height_px": 240},
+            "capture": {"stereo": True},
+            "mocap": {"T_world_mocap": {"translation_m": [x, y, 0.0], "rpy_deg": [0.0, 0.0, 30.0]}},
+        }
+    )
+    assert lab.mocap.T_world_mocap.to_transform().almost_equal(T_WORLD_MOCAP, 1e-12, 1e-12)
+    streams = lab.section("capture", CaptureConfig).streams()
+    cam = SimCameraPublisher(pub_s, keys, truth_at, lab.camera, clock, streams=streams)
+    system = SimMocapSystem(clock, {"uav1": truth_at}, T_world_mocap=T_WORLD_MOCAP, rate_hz=MOCAP_HZ)
+    mocap = SimMocapPublisher(pub_s, keys, system)
     out = tmp / "run.mcap"
     rec = BusRecorder(rec_s, out, ["uav1/**"], compression="zstd", metadata=recording_metadata(lab))
     try:
-        wait(lambda: cam.has_subscribers and has_subscribers(mocap._pub), 10, "the recorder to subscribe")
+        wait(lambda: cam.has_subscribers and mocap.has_subscribers, 10, "the recorder to subscribe")
         cam.start()
         mocap.start()
         ticks = int(SIM_SECONDS * MOCAP_HZ)
@@ -183,27 +189,42 @@ def test_export_tum_follows_the_format_and_loads_back(recording: tuple[Path, Lab
         msgs = list(make_reader(fh).iter_messages(topics=["/uav1/camera/depth/image"]))
     mm = Image.decode(msgs[-1][2].data).array()
     assert np.array_equal(depth.astype(np.int64), np.minimum(mm.astype(np.int64) * 5, 65535))
-    # groundtruth.txt is the colour camera's pose in the mocap frame, at the mocap stamps.
+    # groundtruth.txt is the colour camera's pose in the world frame (the recording's T_world_mocap
+    # applied), at the mocap stamps.
     gt = read_tum(dst / "groundtruth.txt")
     assert len(gt) == int(SIM_SECONDS * MOCAP_HZ) + 1
     T_bc = lab.camera.T_body_camera.to_transform()  # noqa: N806
     t0 = LockstepClock().time_ns()
     for i in (0, len(gt) // 2, len(gt) - 1):
-        expected = T_WORLD_MOCAP.inverse() @ truth_at((int(gt.stamps_ns[i]) - t0) * 1e-9) @ T_bc
+        expected = truth_at((int(gt.stamps_ns[i]) - t0) * 1e-9) @ T_bc
         assert gt.transform(i).almost_equal(expected, 1e-8, 1e-8)
+    assert "world frame" in (dst / "groundtruth.txt").read_text().splitlines()[0] and rep.frame == "world"
     assoc = (dst / "associations.txt").read_text().splitlines()
     assert len(assoc) == frames and all(len(a.split()) == 4 for a in assoc)
     assert len((dst / "associations_gt.txt").read_text().splitlines()) == frames
-    # Loads back as an estimator input, with the exported calibration.
-    K = read_tum_calibration(dst)  # noqa: N806
+    # Loads back as an estimator input, with the exported calibration (read from camera.yaml).
+    K = read_tum_camera_yaml(dst)  # noqa: N806
     fx, fy, cx, cy = lab.camera.intrinsics()
     assert (K.fx, K.fy, K.cx, K.cy, K.width, K.height) == (fx, fy, cx, cy, 320, 240)
-    seq = open_sequence(dst, intrinsics=K)
+    seq = open_sequence(dst)
+    assert seq.intrinsics == K
     assert len(seq) == frames and seq.has_groundtruth()
     frame = next(iter(seq.frames()))
     assert frame.color_bgr is not None and frame.depth_m is not None
     assert frame.T_world_camera is not None
     assert np.allclose(frame.depth_m[frame.depth_m > 0], mm_first_frame(out)[frame.depth_m > 0] / 1000.0, atol=1e-3)
+
+
+def test_export_in_the_mocap_frame_on_request(recording: tuple[Path, LabConfig, int], tmp_path: Path) -> None:
+    out, lab, _frames = recording
+    rep = export_recording(out, tmp_path / "tum_mocap", "tum", frame="mocap")
+    assert rep.frame == "mocap"
+    gt = read_tum(tmp_path / "tum_mocap" / "groundtruth.txt")
+    t0 = LockstepClock().time_ns()
+    T_bc = lab.camera.T_body_camera.to_transform()  # noqa: N806
+    i = len(gt) // 2
+    expected = T_WORLD_MOCAP.inverse() @ truth_at((int(gt.stamps_ns[i]) - t0) * 1e-9) @ T_bc
+    assert gt.transform(i).almost_equal(expected, 1e-8, 1e-8)
 
 
 def mm_first_frame(out: Path) -> np.ndarray:
@@ -232,19 +253,22 @@ def test_export_euroc_follows_the_format_and_loads_back(recording: tuple[Path, L
     frame = next(iter(seq.frames()))
     assert frame.right_gray is not None and frame.T_world_camera is not None
     t0 = LockstepClock().time_ns()
-    expected = (
-        T_WORLD_MOCAP.inverse() @ truth_at((frame.stamp_ns - t0) * 1e-9) @ lab.camera.T_body_camera.to_transform()
-    )
+    expected = truth_at((frame.stamp_ns - t0) * 1e-9) @ lab.camera.T_body_camera.to_transform()
     assert frame.T_world_camera.almost_equal(expected, 1e-6, 1e-6)
     raw = open_sequence(dst, rectify=False, stereo=False)
     assert len(raw) == frames
 
 
-def test_mcap_sequence_reads_the_recording(recording: tuple[Path, LabConfig, int]) -> None:
+def test_mcap_sequence_reads_the_recording_in_the_world_frame(recording: tuple[Path, LabConfig, int]) -> None:
     out, lab, frames = recording
-    seq = open_sequence(out, T_body_camera=lab.camera.T_body_camera.to_transform())
+    seq = open_sequence(out)  # frames and extrinsics from the recording's own metadata
     assert len(seq) == frames and seq.depth_intrinsics is not None
     assert seq.baseline_m == pytest.approx(lab.camera.stereo_baseline_m)
+    gt = seq.groundtruth()
+    t0 = LockstepClock().time_ns()
+    i = len(gt) // 3
+    expected = truth_at((int(gt.stamps_ns[i]) - t0) * 1e-9) @ lab.camera.T_body_camera.to_transform()
+    assert gt.transform(i).almost_equal(expected, 1e-8, 1e-8)
 
 
 def test_vo_runs_on_a_recording_cut_between_colour_and_depth(
@@ -293,10 +317,10 @@ def test_camera_thread_publishes_every_due_frame(sessions: tuple[object, object]
     cam = SimCameraPublisher(
         pub_s,
         Keys("uav9"),
-        lambda: (clock.time_ns(), truth_at(clock.monotonic_s())),
+        truth_at,
         cfg,
-        clock,  # type: ignore[arg-type]
-        capture_cfg=CaptureConfig(depth=False, tf=False),
+        clock,
+        streams=CaptureConfig(depth=False, tf=False).streams(),
     )
     with cam:
         for k in range(1, 6):

@@ -19,7 +19,6 @@ from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 
 from capture.export import export_recording
-from capture.mcapwriter import FastMcapWriter
 from capture.recorder import Compression, Recorder, StreamSample
 from capture.session import BusRecorder
 from capture.sources.mocap import MocapBridge
@@ -40,7 +39,8 @@ from flightkit.bus.session import open_session
 from flightkit.clock import SimClock, WallClock
 from flightkit.config import BusConfig
 from flightkit.datasets import read_tum
-from flightkit.frames import Transform
+from flightkit.datasets.mcap_writer import FastMcapWriter
+from flightkit.frames import Transform, WorldFrames
 from flightkit.mocap.bus_source import BusMocapSource
 from flightkit.mocap.motioncapture_source import MotionCaptureSource, mock_rigid_bodies
 from tests.conftest import free_tcp_port, wait
@@ -413,16 +413,17 @@ def test_mocap_bridge_publishes_mock_system_in_the_mocap_frame(
     out = tmp_path / "mocap.mcap"
 
     async def run() -> tuple[MocapBridge, dict[str, Transform]]:
-        # The source maps into the world like any flight consumer; the bridge undoes it.
+        # The source places poses in the world like any flight consumer; the bridge publishes them as
+        # the system measured them (nothing undone).
         src = MotionCaptureSource(
             "mock",
             clock,
             options={"rigid_bodies": mock_rigid_bodies(bodies), "rate": "200"},
-            T_world_mocap=T_world_mocap,
+            frames=WorldFrames(T_world_mocap),
         )
-        listener = BusMocapSource(rec_s, keys, clock, T_world_mocap)
+        listener = BusMocapSource(rec_s, keys, clock, WorldFrames(T_world_mocap))
         async with src, listener:
-            bridge = MocapBridge(pub_s, keys, src, T_world_mocap=T_world_mocap)
+            bridge = MocapBridge(pub_s, keys, src)
             task = asyncio.ensure_future(bridge.run())
             with BusRecorder(rec_s, out, ["uav1/**"], compression="none") as rec:
                 deadline = time.monotonic() + 10

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from flightkit.cli.closed_loop import ClosedLoopReport, fly_closed_loop
+from flightkit.apps.closed_loop import ClosedLoopReport, fly_closed_loop
 from flightkit.config import BusConfig, load_config
 from flightkit.datasets.trajectory import read_tum
 from tests.conftest import free_tcp_port

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from flightkit.apps.sim_session import SimSession, sim_session
 from flightkit.clock import ONE_PROCESS_WALL_STEP_S
 from flightkit.config import Autopilot
 from flightkit.errors import MocapBodyMissing, SafetyAbort
@@ -33,7 +34,6 @@ from flightkit.link.mavlink import MavlinkLink
 from trajectories.flightlog import FlightSummary, read_flight_log
 from trajectories.plan import Plan, load_plan
 from trajectories.runner import Status, fly_plan
-from trajectories.simulated import SimSession, sim_session
 from trajectories.supervisor import Action, Fault
 
 REPO = Path(__file__).resolve().parents[2]

@@ -28,9 +28,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from flightkit.apps.sim_session import fly_plan_in_sim
 from trajectories.flightlog import FlightSummary, read_flight_log
 from trajectories.plan import Plan, load_plan
-from trajectories.simulated import fly_plan_in_sim
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 SPEED = 5.0  # the 2-core machine keeps up at 5x (20x starves the loop)

@@ -20,7 +20,7 @@ from flightkit.bus.session import open_session
 from flightkit.clock import LockstepClock, SimClock
 from flightkit.config import BusConfig, MocapConfig, MocapSourceKind, TransformConfig
 from flightkit.errors import MocapBodyMissing, MocapError
-from flightkit.frames import Transform
+from flightkit.frames import Transform, WorldFrames
 from flightkit.mocap import (
     ForwardStats,
     MocapSource,
@@ -30,7 +30,7 @@ from flightkit.mocap import (
     open_mocap,
 )
 from flightkit.mocap.bus_source import BusMocapSource
-from flightkit.sim.mocap_publisher import SimMocapPublisher
+from flightkit.sim.mocap import SimMocapPublisher, SimMocapSystem
 from tests.conftest import free_tcp_port
 
 pytestmark = pytest.mark.timeout(90)
@@ -59,7 +59,7 @@ def test_motioncapture_mock_maps_into_the_world_and_counts_frames() -> None:
         src = MotionCaptureSource(
             "mock", clock, options={"rigid_bodies": mock_rigid_bodies({"uav1": T_mocap_uav, "box": T_mocap_box}),
                                     "rate": 200},
-            T_world_mocap=T_WORLD_MOCAP,
+            frames=WorldFrames(T_WORLD_MOCAP),
         )
         assert isinstance(src, MocapSource)
         async with src:
@@ -67,6 +67,8 @@ def test_motioncapture_mock_maps_into_the_world_and_counts_frames() -> None:
             # libmotioncapture stores float32: compare at its precision
             assert pose.T_world_body.almost_equal(T_WORLD_UAV, tol_m=1e-5, tol_rad=1e-5)
             assert pose.valid and pose.body == "uav1" and pose.seq >= 1
+            assert pose.T_mocap_body is not None  # kept as measured, for bridges and recorders
+            assert pose.T_mocap_body.almost_equal(T_mocap_uav, tol_m=1e-5, tol_rad=1e-5)
             assert abs(pose.stamp_ns - clock.time_ns()) < 2_000_000_000
             seqs = []
             async for p in src.poses("uav1"):
@@ -113,13 +115,11 @@ def test_sim_publisher_sends_the_mocap_frame_and_bus_source_maps_it_to_the_world
     keys = Keys("uav1")
     a, b = _pair()
 
-    def truth() -> tuple[int, Transform]:
-        return clock.time_ns(), T_WORLD_UAV
-
     async def main() -> None:
         raw = BusSubscriber(a, keys.mocap_pose("uav1"), maxlen=10_000)
-        src = BusMocapSource(a, keys, clock, T_WORLD_MOCAP)
-        pub = SimMocapPublisher(b, keys, "uav1", truth, clock, T_WORLD_MOCAP, rate_hz=100.0)
+        src = BusMocapSource(a, keys, clock, WorldFrames(T_WORLD_MOCAP))
+        system = SimMocapSystem(clock, {"uav1": lambda _t: T_WORLD_UAV}, T_world_mocap=T_WORLD_MOCAP, rate_hz=100.0)
+        pub = SimMocapPublisher(b, keys, system)
         async with src, pub:
             pose = await src.wait_for_body("uav1", timeout_s=10.0)
             # the wire carries T_mocap_body, not the world pose
@@ -132,25 +132,25 @@ def test_sim_publisher_sends_the_mocap_frame_and_bus_source_maps_it_to_the_world
             assert abs(pose.received_s - clock.monotonic_s()) < 1.0
 
             # occlusion: NaN on the wire -> valid=False with the last known pose
-            pub.hide_body()
+            system.hide_body("uav1")
             async for p in src.poses("uav1"):
                 if not p.valid:
                     assert p.T_world_body.almost_equal(T_WORLD_UAV, 1e-9, 1e-9)
                     break
             with pytest.raises(MocapBodyMissing, match="visible bodies: none"):
                 await src.wait_for_body("uav1", timeout_s=0.05)
-            pub.show_body()
+            system.show_body("uav1")
             assert (await src.wait_for_body("uav1", timeout_s=5.0)).valid
 
             # dropout: nothing arrives for 1 s of clock time, then the stream resumes
             before = pub.published
-            pub.drop_for(1.0)
+            system.drop_for(1.0)
             t0 = clock.monotonic_s()
             async for p in src.poses("uav1"):
                 if p.received_s - t0 > 0.05:
                     break
             assert clock.monotonic_s() - t0 >= 0.9
-            assert pub.dropped > 0 and pub.published > before
+            assert system.frames_dropped > 0 and pub.published > before
             assert src.missed("uav1") == 0  # a dropout is silence, not lost messages
             with pytest.raises(MocapBodyMissing) as info:
                 await src.wait_for_body("uav2", timeout_s=0.05)
@@ -164,23 +164,53 @@ def test_sim_publisher_sends_the_mocap_frame_and_bus_source_maps_it_to_the_world
         a.close()  # type: ignore[attr-defined]
 
 
-def test_sim_publisher_noise_is_seeded_and_has_the_configured_spread() -> None:
+def test_sim_mocap_noise_is_seeded_and_has_the_configured_spread() -> None:
+    clock = LockstepClock()
+    kw = dict(T_world_mocap=T_WORLD_MOCAP, rate_hz=100.0, noise_m=0.01, noise_rad=0.0, seed=3)
+    s1 = SimMocapSystem(clock, {"uav1": lambda _t: T_WORLD_UAV}, **kw)  # type: ignore[arg-type]
+    s2 = SimMocapSystem(clock, {"uav1": lambda _t: T_WORLD_UAV}, **kw)  # type: ignore[arg-type]
+    exact = (T_WORLD_MOCAP.inverse() @ T_WORLD_UAV).translation
+    d1 = np.array([s1.measure(T_WORLD_UAV).translation - exact for _ in range(2000)])
+    d2 = np.array([s2.measure(T_WORLD_UAV).translation - exact for _ in range(2000)])
+    np.testing.assert_array_equal(d1, d2)
+    assert 0.009 < float(d1.std()) < 0.011 and abs(float(d1.mean())) < 0.001
+
+
+def test_a_pose_in_an_unknown_frame_fails_the_source_with_the_frames_name() -> None:
+    clock = SimClock(speed=5.0)
+    keys = Keys("uav1")
     a, b = _pair()
+
+    async def main() -> None:
+        from flightkit.bus.msgs import Header
+        from flightkit.bus.pubsub import BusPublisher
+
+        async with BusMocapSource(a, keys, clock, WorldFrames(T_WORLD_MOCAP)) as src:
+            pub = BusPublisher(b, keys.mocap_pose("uav1"), PoseStamped, reliable=True, drop_when_congested=False)
+            world = PoseStamped.from_transform(clock.time_ns(), "world", T_WORLD_UAV)
+            odom = PoseStamped(Header(clock.time_ns(), "odom"), (0.0, 0.0, 1.0), (0.0, 0.0, 0.0, 1.0))
+            deadline = time.monotonic() + 10.0
+            while src.latest("uav1") is None:  # the subscription needs a moment to match
+                assert time.monotonic() < deadline, "no pose arrived"
+                pub.publish(world)
+                await asyncio.sleep(0.02)
+            # a pose already in the world frame is used as it is, and its mocap-frame pose derived
+            pose = await src.wait_for_body("uav1", timeout_s=5.0)
+            assert pose.T_world_body.almost_equal(T_WORLD_UAV, 1e-9, 1e-9)
+            assert pose.T_mocap_body is not None
+            assert pose.T_mocap_body.almost_equal(T_WORLD_MOCAP.inverse() @ T_WORLD_UAV, 1e-9, 1e-9)
+            pub.publish(odom)
+            with pytest.raises(MocapError, match="frame 'odom' cannot be placed in the world"):
+                while True:
+                    await src.wait_for_body("uav1", timeout_s=1.0)
+                    await asyncio.sleep(0.01)
+            pub.close()
+
     try:
-        clock = LockstepClock()
-        kw = dict(T_world_mocap=T_WORLD_MOCAP, rate_hz=100.0, noise_m=0.01, noise_rad=0.0)
-        p1 = SimMocapPublisher(b, Keys("n1"), "uav1", lambda: (0, T_WORLD_UAV), clock, seed=3, **kw)  # type: ignore[arg-type]
-        p2 = SimMocapPublisher(b, Keys("n2"), "uav1", lambda: (0, T_WORLD_UAV), clock, seed=3, **kw)  # type: ignore[arg-type]
-        exact = (T_WORLD_MOCAP.inverse() @ T_WORLD_UAV).translation
-        d1 = np.array([p1.mocap_pose(T_WORLD_UAV).translation - exact for _ in range(2000)])
-        d2 = np.array([p2.mocap_pose(T_WORLD_UAV).translation - exact for _ in range(2000)])
-        np.testing.assert_array_equal(d1, d2)
-        assert 0.009 < float(d1.std()) < 0.011 and abs(float(d1.mean())) < 0.001
-        p1.stop()
-        p2.stop()
+        asyncio.run(main())
     finally:
-        b.close()
-        a.close()
+        b.close()  # type: ignore[attr-defined]
+        a.close()  # type: ignore[attr-defined]
 
 
 def test_open_mocap_builds_the_configured_source() -> None:
@@ -227,14 +257,12 @@ def test_forward_to_vehicle_feeds_the_sim_autopilots_estimator() -> None:
         start_yaw_rad=0.7, ready_after_s=0.0,
     )
 
-    def truth() -> tuple[int, Transform]:
-        return clock.time_ns(), lab.T_world_body()
-
     async def main() -> None:
         link = MavlinkLink(LinkConfig(url=lab.client_url, heartbeat_timeout_s=5.0), Autopilot.PX4, clock)
         stats = ForwardStats()
-        async with link, BusMocapSource(a, keys, clock, T_WORLD_MOCAP) as src, SimMocapPublisher(
-            b, keys, "uav1", truth, clock, T_WORLD_MOCAP, rate_hz=120.0
+        system = SimMocapSystem(clock, {"uav1": lab.T_world_body}, T_world_mocap=T_WORLD_MOCAP, rate_hz=120.0)
+        async with link, BusMocapSource(a, keys, clock, WorldFrames(T_WORLD_MOCAP)) as src, SimMocapPublisher(
+            b, keys, system
         ):
             await src.wait_for_body("uav1", timeout_s=10.0)
             task = asyncio.create_task(forward_to_vehicle(src, link, "uav1", rate_hz=30.0, stats=stats))

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from flightkit.clock import SimClock
-from flightkit.errors import MocapBodyMissing
+from flightkit.errors import MocapBodyMissing, MocapError
 from flightkit.frames import Transform
 from flightkit.mocap.base import MocapPose, MocapSource
-from flightkit.mocap.simulated import SimMocapSource
 from flightkit.sim.lab import SimLab
+from flightkit.sim.mocap import SimMocapSource
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -105,7 +105,7 @@ def test_dropout_and_occlusion() -> None:
             assert not p.valid and src.latest("uav1") is not None
             with pytest.raises(MocapBodyMissing) as info:
                 await src.wait_for_body("uav1", 0.2)
-            assert set(info.value.visible) == {"uav1", "wand"}
+            assert set(info.value.visible) == {"wand"}  # the hidden vehicle is not visible
             src.show_body()
             assert (await src.wait_for_body("uav1", 2.0)).valid
             await stream.aclose()
@@ -126,7 +126,24 @@ def test_missing_body_names_the_visible_ones() -> None:
 
 def test_bad_arguments_are_refused() -> None:
     lab = lab_at((0.0, 0.0, 0.0))
-    with pytest.raises(ValueError, match="rate"):
+    with pytest.raises(MocapError, match="rate"):
         SimMocapSource(lab, rate_hz=0.0)
-    with pytest.raises(ValueError, match="noise"):
+    with pytest.raises(MocapError, match="noise"):
         SimMocapSource(lab, noise_m=-1.0)
+
+
+def test_a_stale_pose_does_not_satisfy_wait_for_body() -> None:
+    """One freshness rule for every source: a valid pose is not enough once the stream is silent."""
+    lab = lab_at((0.0, 0.0, 0.0), speed=5.0)
+
+    async def go() -> None:
+        async with SimMocapSource(lab, rate_hz=100) as src:
+            await src.wait_for_body("uav1", 2.0)
+            src.drop_for(5.0)
+            await lab.clock.sleep(0.5)
+            last = src.latest("uav1")
+            assert last is not None and last.valid  # still the newest pose, and valid ...
+            with pytest.raises(MocapBodyMissing):  # ... but 0.5 s old: not fresh
+                await src.wait_for_body("uav1", 0.3)
+
+    asyncio.run(go())

@@ -13,9 +13,9 @@ import pytest
 from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 
-from capture.mcapfile import recover, scan
 from capture.recorder import Compression, Recorder, StreamSample
-from flightkit.errors import CaptureError
+from flightkit.datasets.mcap_recovery import recover, scan
+from flightkit.errors import CaptureError, DatasetError
 
 STRING_SCHEMA = "string data\n"
 
@@ -159,7 +159,7 @@ def test_sigkill_then_recover(tmp_path: Path) -> None:
     with AnyReader([tmp_path / "fixed.mcap"]) as ar:
         texts = [ar.deserialize(raw, c.msgtype).data for c, _, raw in ar.messages()]
     assert texts == [f"msg {i}" + "x" * 200 for i in range(report.messages)]
-    with pytest.raises(CaptureError, match="exists"):
+    with pytest.raises(DatasetError, match="exists"):
         recover(crashed, tmp_path / "fixed.mcap")
 
 

@@ -246,7 +246,7 @@ def test_cli_reports_live_mocap_from_the_bus_in_the_world_frame(tmp_path: Path) 
     from flightkit.clock import WallClock
     from flightkit.config import load_config
     from flightkit.frames import Transform
-    from flightkit.sim.mocap_publisher import SimMocapPublisher
+    from flightkit.sim.mocap import SimMocapPublisher, SimMocapSystem
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -261,10 +261,10 @@ def test_cli_reports_live_mocap_from_the_bus_in_the_world_frame(tmp_path: Path) 
     T_world_body = Transform.from_xyz_yaw([1.0, 2.0, 1.5], 0.3)
     clock = WallClock()
     session = open_session(cfg.bus)
-    pub = SimMocapPublisher(
-        session, Keys("uav1"), "uav1", lambda: (clock.time_ns(), T_world_body), clock,
-        T_world_mocap=cfg.mocap.T_world_mocap.to_transform(), rate_hz=100.0,
+    system = SimMocapSystem(
+        clock, {"uav1": lambda _t: T_world_body}, T_world_mocap=cfg.mocap.T_world_mocap.to_transform(), rate_hz=100.0
     )
+    pub = SimMocapPublisher(session, Keys("uav1"), system)
     try:
         with pub, PtyRelay(tmp_path, baud=115200) as relay, MapServer([relay.path_b]) as server:
             rc = cli_main(

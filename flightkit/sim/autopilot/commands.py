@@ -19,7 +19,7 @@ import numpy as np
 import numpy.typing as npt
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
-from flightkit.frames import wrap_angle_rad
+from flightkit.frames import ned_to_enu, wrap_angle_rad, yaw_ned_to_enu
 from flightkit.link.base import FlightMode
 from flightkit.sim.autopilot.core import (
     _EARTH_RADIUS_M,
@@ -338,7 +338,7 @@ class _AutopilotInbound(_AutopilotTelemetry):
             if body:  # forward, right, down relative to the current heading
                 c, s = math.cos(yaw_est), math.sin(yaw_est)
                 return np.array([c * x + s * y, s * x - c * y, -z])
-            return np.array([y, x, -z])  # NED -> ENU
+            return ned_to_enu((x, y, z))
 
         pos = vel = None
         if use_pos:
@@ -352,7 +352,7 @@ class _AutopilotInbound(_AutopilotTelemetry):
             if p.autopilot.value == "ardupilot" and frame == MAV_FRAME_BODY_OFFSET_NED:
                 yaw = wrap_angle_rad(yaw_est - msg.yaw)  # relative, clockwise positive
             else:
-                yaw = wrap_angle_rad(math.pi / 2.0 - msg.yaw)
+                yaw = yaw_ned_to_enu(msg.yaw)
         elif not mask & _IGNORE_YAW_RATE and math.isfinite(msg.yaw_rate):
             yaw_rate = -float(msg.yaw_rate)
         if (pos is not None and not np.all(np.isfinite(pos))) or (

@@ -15,7 +15,7 @@ import numpy as np
 import numpy.typing as npt
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
-from flightkit.frames import wrap_angle_rad
+from flightkit.frames import ned_to_enu, wrap_angle_rad, yaw_ned_to_enu
 from flightkit.link.base import FlightMode, LandedState
 from flightkit.sim.autopilot.core import _NEEDS_POSITION_ARDUPILOT, _AutopilotCore, _rot_z
 from flightkit.sim.dynamics import MotorState
@@ -306,14 +306,14 @@ class _AutopilotFlight(_AutopilotCore):
         if not self._ev_pos_enabled():
             return
         gain = 0.3
-        meas_local = np.array([pos_ned[1], pos_ned[0], -pos_ned[2]])
+        meas_local = ned_to_enu(pos_ned)
         if not self._ev_active:
             gain = 1.0  # first measurement: the estimate jumps onto the vision frame
         est = self._est_pos_local()
         self._est_bias = self._est_bias + gain * (meas_local - est)
         if yaw_ned is not None and math.isfinite(yaw_ned) and self._ev_yaw_enabled():
             # align the estimator's frame with the vision frame; keep the position estimate continuous
-            meas_yaw = wrap_angle_rad(math.pi / 2.0 - yaw_ned)
+            meas_yaw = yaw_ned_to_enu(yaw_ned)
             before = self._est_pos_local()
             self._yaw_bias = wrap_angle_rad(
                 self._yaw_bias + gain * wrap_angle_rad(meas_yaw - self._est_yaw_local())

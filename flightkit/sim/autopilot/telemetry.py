@@ -16,7 +16,7 @@ import numpy as np
 import numpy.typing as npt
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
-from flightkit.frames import wrap_angle_rad
+from flightkit.frames import enu_to_ned, yaw_enu_to_ned
 from flightkit.sim.autopilot.core import _EARTH_RADIUS_M
 from flightkit.sim.autopilot.flight import _AutopilotFlight
 
@@ -95,15 +95,12 @@ class _AutopilotTelemetry(_AutopilotFlight):
             return None
         pos = self._est_pos_local()
         vel = self._est_vel_local()
-        return self._mav.local_position_ned_encode(
-            self._time_boot_ms(now), pos[1], pos[0], -pos[2], vel[1], vel[0], -vel[2]
-        )
+        pos_ned, vel_ned = enu_to_ned(pos), enu_to_ned(vel)
+        return self._mav.local_position_ned_encode(self._time_boot_ms(now), *pos_ned, *vel_ned)
 
     def _attitude_ned(self) -> tuple[float, float, float, float]:
         st = self.dynamics.state()
-        yaw_ned = wrap_angle_rad(
-            math.pi / 2.0 - (st.yaw_rad - self.options.heading_offset_rad + self._yaw_bias)
-        )
+        yaw_ned = yaw_enu_to_ned(st.yaw_rad - self.options.heading_offset_rad + self._yaw_bias)
         # FLU roll/pitch -> FRD roll (same sign) / pitch (opposite sign: FLU +pitch is nose down)
         return st.roll_rad, -st.pitch_rad, yaw_ned, -st.yaw_rate_rad_s
 
@@ -140,18 +137,17 @@ class _AutopilotTelemetry(_AutopilotFlight):
         vel = self._est_vel_local()
         lat, lon, alt = self._global_of_local(pos)
         rel = int(round((pos[2] - self._home_local_enu[2]) * 1000))
-        hdg = (
-            int(round(math.degrees(wrap_angle_rad(math.pi / 2 - self._est_yaw_local())) % 360 * 100)) % 36000
-        )
+        hdg = int(round(math.degrees(yaw_enu_to_ned(self._est_yaw_local())) % 360 * 100)) % 36000
+        vel_ned = enu_to_ned(vel)
         return self._mav.global_position_int_encode(
             self._time_boot_ms(now),
             lat,
             lon,
             alt,
             rel,
-            int(vel[1] * 100),
-            int(vel[0] * 100),
-            int(-vel[2] * 100),
+            int(vel_ned[0] * 100),
+            int(vel_ned[1] * 100),
+            int(vel_ned[2] * 100),
             hdg,
         )
 
@@ -160,15 +156,16 @@ class _AutopilotTelemetry(_AutopilotFlight):
             return None
         h = self._home_local_enu
         lat, lon, alt = self._global_of_local(h)
-        yaw_ned = wrap_angle_rad(math.pi / 2 - self._home_yaw_local)
+        yaw_ned = yaw_enu_to_ned(self._home_yaw_local)
         q = (math.cos(yaw_ned / 2), 0.0, 0.0, math.sin(yaw_ned / 2))
+        h_ned = enu_to_ned(h)
         return self._mav.home_position_encode(
             lat,
             lon,
             alt,
-            float(h[1]),
-            float(h[0]),
-            float(-h[2]),
+            float(h_ned[0]),
+            float(h_ned[1]),
+            float(h_ned[2]),
             q,
             0.0,
             0.0,
@@ -182,7 +179,7 @@ class _AutopilotTelemetry(_AutopilotFlight):
     def _vfr_hud(self, now: float) -> Any:
         pos = self._est_pos_local()
         vel = self._est_vel_local()
-        hdg = int(round(math.degrees(wrap_angle_rad(math.pi / 2 - self._est_yaw_local())))) % 360
+        hdg = int(round(math.degrees(yaw_enu_to_ned(self._est_yaw_local())))) % 360
         throttle = 0 if not self._armed else (50 if not self.dynamics.on_ground else 10)
         return self._mav.vfr_hud_encode(
             0.0,

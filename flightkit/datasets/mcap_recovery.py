@@ -39,7 +39,7 @@ from mcap.records import (
 )
 from mcap.stream_reader import breakup_chunk
 
-from flightkit.errors import CaptureError
+from flightkit.errors import DatasetError
 
 __all__ = ["RecoveryReport", "ScanResult", "finalize_in_place", "recover", "scan"]
 
@@ -126,17 +126,17 @@ def scan(path: str | Path) -> ScanResult:
     """Walk the records of ``path`` and find its intact prefix.
 
     Raises:
-        CaptureError: if the file is not an MCAP file at all.
+        DatasetError: if the file is not an MCAP file at all.
     """
     p = Path(path)
     try:
         fh = p.open("rb")
     except OSError as exc:
-        raise CaptureError(f"cannot open {p}: {exc.strerror}; check the path") from exc
+        raise DatasetError(f"cannot open {p}: {exc.strerror}; check the path") from exc
     res = ScanResult(file_size=p.stat().st_size)
     with fh:
         if fh.read(len(MAGIC)) != MAGIC:
-            raise CaptureError(f"{p} is not an MCAP file (bad magic); nothing to recover")
+            raise DatasetError(f"{p} is not an MCAP file (bad magic); nothing to recover")
         res.good_end = len(MAGIC)
         pending: _ChunkInfo | None = None  # a chunk whose message indexes may still follow
         while True:
@@ -266,13 +266,13 @@ def recover(src: str | Path, dst: str | Path, allow_overwrite: bool = False) -> 
     """Copy every complete chunk of ``src`` into a valid MCAP file ``dst``.
 
     Raises:
-        CaptureError: if ``src`` is not MCAP, or ``dst`` exists and ``allow_overwrite`` is False.
+        DatasetError: if ``src`` is not MCAP, or ``dst`` exists and ``allow_overwrite`` is False.
     """
     src, dst = Path(src), Path(dst)
     if dst.exists() and not allow_overwrite:
-        raise CaptureError(f"{dst} exists; choose another output path or pass --force to overwrite it")
+        raise DatasetError(f"{dst} exists; choose another output path or pass --force to overwrite it")
     if src.resolve() == dst.resolve():
-        raise CaptureError("recover writes a new file; give an output path different from the input")
+        raise DatasetError("recover writes a new file; give an output path different from the input")
     res = scan(src)
     with src.open("rb") as fin, dst.open("wb") as fout:
         remaining = res.good_end

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from capture.export import tum_associate
+from flightkit.datasets.tum import tum_associate
 
 MS = 1_000_000
 

@@ -17,7 +17,7 @@ The CRC of the uncompressed records is computed piece by piece (``zlib.crc32`` r
 GIL on large buffers). The file layout is plain MCAP (ros2 profile as the caller sets it):
 header, schemas and channels and metadata in the data section, chunks each followed by
 their message indexes, then the summary (schemas, channels, statistics, chunk and metadata
-indexes, summary offsets) and footer, written by :func:`capture.mcapfile._write_ending`,
+indexes, summary offsets) and footer, written by :func:`flightkit.datasets.mcap_recovery._write_ending`,
 the same code that repairs crashed files.
 """
 
@@ -31,10 +31,12 @@ from typing import Any
 
 from mcap.data_stream import RecordBuilder
 from mcap.records import Channel, ChunkIndex, Header, MessageIndex, Metadata, MetadataIndex, Schema
+from mcap.writer import CompressionType
 
-from capture.mcapfile import MAGIC, ScanResult, _ChunkInfo, _write_ending
+from flightkit.datasets.mcap_recovery import MAGIC, ScanResult, _ChunkInfo, _write_ending
+from flightkit.errors import DatasetError
 
-__all__ = ["COMPRESSIONS", "FastMcapWriter"]
+__all__ = ["COMPRESSIONS", "CompressionType", "FastMcapWriter"]
 
 COMPRESSIONS = ("", "zstd", "lz4")
 _MSG_HEAD = struct.Struct("<BQHIQQ")  # opcode, record length, channel, sequence, log time, publish time
@@ -96,7 +98,7 @@ class FastMcapWriter:
 
     def __init__(self, fh: Any, compression: str = "", *, zstd_level: int = 3) -> None:
         if compression not in COMPRESSIONS:
-            raise ValueError(f"compression {compression!r} is not one of {COMPRESSIONS}")
+            raise DatasetError(f"compression {compression!r} is not one of {COMPRESSIONS}; use zstd, lz4 or none")
         self._fh = fh
         self._fd = fh.fileno()
         self._compression = compression

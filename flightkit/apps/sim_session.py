@@ -3,7 +3,7 @@
 :func:`sim_session` starts a :class:`~flightkit.sim.lab.SimLab` (PX4-like or ArduPilot-like
 autopilot on a real UDP port on loopback), connects a real :class:`VehicleLink` to it
 (pymavlink or MAVSDK, over that UDP port) and starts a
-:class:`~flightkit.mocap.simulated.SimMocapSource` on the lab's clock. Flight code cannot
+:class:`~flightkit.sim.mocap.SimMocapSource` on the lab's clock. Flight code cannot
 tell it from a lab: the runner, the supervisor and the scripts take the same objects.
 
 :func:`fly_plan_in_sim` flies a whole plan that way (``flightkit fly PLAN --connect sim``,
@@ -25,8 +25,8 @@ from pathlib import Path
 from flightkit.clock import ONE_PROCESS_WALL_STEP_S, Clock, SimClock
 from flightkit.config import Autopilot, LabConfig, LinkBackend
 from flightkit.link.base import VehicleLink
-from flightkit.mocap.simulated import SimMocapSource
 from flightkit.sim.lab import SimLab
+from flightkit.sim.mocap import SimMocapSource
 from trajectories.flightlog import FlightSummary
 from trajectories.plan import Plan
 from trajectories.runner import Status, fly_plan

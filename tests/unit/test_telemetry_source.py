@@ -1,4 +1,4 @@
-"""TelemetryPoseSource: the autopilot's local ENU estimate as world-frame mocap poses."""
+"""TelemetryPoseSource: the autopilot's local ENU estimate, placed in the world as mocap poses."""
 
 from __future__ import annotations
 
@@ -9,9 +9,10 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from flightkit.clock import LockstepClock
+from flightkit.errors import MocapError
 from flightkit.frames import Transform, rotation_enu_flu_from_ned_frd
 from flightkit.link.base import Telemetry
-from flightkit.link.pose_source import TelemetryPoseSource, pose_from_telemetry
+from flightkit.mocap.telemetry_source import AUTOPILOT_LOCAL_FRAME_ID, TelemetryPoseSource, pose_from_telemetry
 
 
 def quat_wxyz(R: Rotation) -> tuple[float, float, float, float]:  # noqa: N803
@@ -30,21 +31,26 @@ def tel(
 def test_identity_local_frame_gives_the_telemetry_pose() -> None:
     R = Rotation.from_euler("ZYX", [0.7, 0.05, -0.1])  # noqa: N806
     p = pose_from_telemetry(tel((1.0, -2.0, 1.5), R), "uav1", stamp_ns=123, seq=4)
-    assert p is not None and p.valid
+    assert p is not None and p.valid and p.T_frame_body is not None
     assert p.body == "uav1" and p.stamp_ns == 123 and p.seq == 4 and p.received_s == 1.0
-    np.testing.assert_allclose(p.T_world_body.translation, [1.0, -2.0, 1.5])
-    assert (p.T_world_body.rotation.inv() * R).magnitude() < 1e-12
-    assert p.T_world_body.yaw_rad == pytest.approx(0.7)
+    assert p.frame_id == AUTOPILOT_LOCAL_FRAME_ID
+    np.testing.assert_allclose(p.T_frame_body.translation, [1.0, -2.0, 1.5])
+    assert (p.T_frame_body.rotation.inv() * R).magnitude() < 1e-12
+    assert p.T_frame_body.yaw_rad == pytest.approx(0.7)
 
 
 def test_local_frame_rotated_and_shifted_in_the_world() -> None:
     # the autopilot's local frame: origin at (2, 1, 0) in the world, its x axis pointing along world y
     T_world_local = Transform.from_xyz_yaw([2.0, 1.0, 0.0], math.pi / 2)  # noqa: N806
     R = Rotation.from_euler("z", 0.3)  # noqa: N806
-    p = pose_from_telemetry(tel((1.0, 0.0, 1.0), R), "uav1", stamp_ns=0, T_world_local=T_world_local)
+    holder = _TelemetryHolder(tel((1.0, 0.0, 1.0), R))
+    src = TelemetryPoseSource(holder, LockstepClock(), "uav1", T_world_local=T_world_local)  # type: ignore[arg-type]
+    p = src.poll()
     assert p is not None
     np.testing.assert_allclose(p.T_world_body.translation, [2.0, 2.0, 1.0], atol=1e-12)
     assert p.T_world_body.yaw_rad == pytest.approx(math.pi / 2 + 0.3)
+    assert p.T_mocap_body is not None  # the world pose in the (identity) mocap frame
+    np.testing.assert_allclose(p.T_mocap_body.translation, [2.0, 2.0, 1.0], atol=1e-12)
 
 
 def test_attitude_from_a_ned_frd_autopilot_round_trips() -> None:
@@ -52,8 +58,8 @@ def test_attitude_from_a_ned_frd_autopilot_round_trips() -> None:
     R_ned_frd = Rotation.from_euler("ZYX", [math.radians(30.0), 0.0, 0.0])  # noqa: N806
     R_enu_flu = rotation_enu_flu_from_ned_frd(R_ned_frd)  # noqa: N806
     p = pose_from_telemetry(tel((0.0, 0.0, 1.0), R_enu_flu), "b", stamp_ns=0)
-    assert p is not None
-    assert p.T_world_body.yaw_rad == pytest.approx(math.radians(60.0))  # 30 deg from north = 60 deg from east
+    assert p is not None and p.T_frame_body is not None
+    assert p.T_frame_body.yaw_rad == pytest.approx(math.radians(60.0))  # 30 deg from north = 60 deg from east
 
 
 def test_no_position_yet_gives_none() -> None:
@@ -70,8 +76,8 @@ def test_stale_heartbeat_or_bad_attitude_is_invalid() -> None:
         heartbeat_age_s=0.0,
     )
     p = pose_from_telemetry(bad, "u", stamp_ns=0)
-    assert p is not None and not p.valid
-    np.testing.assert_allclose(p.T_world_body.translation, [0.0, 0.0, 1.0])
+    assert p is not None and not p.valid and p.T_frame_body is not None
+    np.testing.assert_allclose(p.T_frame_body.translation, [0.0, 0.0, 1.0])
 
 
 class _TelemetryHolder:
@@ -99,5 +105,5 @@ def test_poll_hands_out_only_new_snapshots() -> None:
 
 
 def test_rate_is_checked() -> None:
-    with pytest.raises(ValueError, match="outside 1-1000 Hz"):
+    with pytest.raises(MocapError, match="outside 1-1000 Hz"):
         TelemetryPoseSource(_TelemetryHolder(Telemetry()), LockstepClock(), "u", rate_hz=0.0)  # type: ignore[arg-type]

@@ -1,4 +1,4 @@
-"""What a capture source publishes: camera and pose streams, separate from where they go.
+"""What a camera or mocap driver publishes: camera, pose and tf streams, separate from where they go.
 
 A :class:`CameraStream` owns the bus publishers of one camera (``<ns>/camera/<name>/image``,
 optionally ``.../image/compressed``, and ``.../camera_info``) and a reusable encode buffer,
@@ -33,12 +33,13 @@ from flightkit.bus.msgs import (
     TransformStamped,
 )
 from flightkit.bus.pubsub import BusPublisher
-from flightkit.errors import CaptureError
-from flightkit.frames import Transform
+from flightkit.errors import BusError
+from flightkit.frames import MOCAP_FRAME_ID, Transform
 
 __all__ = [
     "CameraModel",
     "CameraStream",
+    "CameraStreamSelection",
     "PosePublisher",
     "TfPublisher",
     "is_best_effort",
@@ -46,6 +47,8 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
+
+_NAN = float("nan")
 
 _BEST_EFFORT_TYPES = frozenset({Image.TYPE, CompressedImage.TYPE})
 
@@ -63,6 +66,25 @@ def has_subscribers(pub: BusPublisher) -> bool:
 def optical_frame_id(keys: Keys, camera: str) -> str:
     """The frame id of a camera's optical frame (OpenCV convention), e.g. ``uav1/camera_color_optical``."""
     return f"{keys.namespace}/camera_{camera}_optical"
+
+
+@dataclass(frozen=True, slots=True)
+class CameraStreamSelection:
+    """Which streams a camera publishes (the ``[capture]`` section's publisher switches).
+
+    Attributes:
+        color: the colour image (rgb8) and its camera_info.
+        depth: 16-bit depth in millimetres (16UC1) and its camera_info.
+        stereo: the rectified stereo pair (left/right mono8) and camera_info.
+        tf: the camera extrinsics (and, from a simulator, the exact camera pose) on ``<ns>/tf``.
+        jpeg_quality: also publish colour as JPEG CompressedImage (0 = off).
+    """
+
+    color: bool = True
+    depth: bool = True
+    stereo: bool = False
+    tf: bool = True
+    jpeg_quality: int = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -155,11 +177,11 @@ class CameraStream:
         """Publish one frame (and its camera_info) stamped ``stamp_ns``; returns the image's sequence number.
 
         Raises:
-            CaptureError: the array does not match the stream's size or encoding.
+            BusError: the array does not match the stream's size or encoding.
         """
         h, w = array.shape[:2]
         if (w, h) != (self.model.width_px, self.model.height_px):
-            raise CaptureError(
+            raise BusError(
                 f"camera {self.name}: frame is {w}x{h} but its calibration is "
                 f"{self.model.width_px}x{self.model.height_px}; publish frames of the calibrated size"
             )
@@ -167,7 +189,7 @@ class CameraStream:
         try:
             msg = Image.from_array(header, array, self.encoding)
         except Exception as exc:
-            raise CaptureError(f"camera {self.name}: {exc}") from exc
+            raise BusError(f"camera {self.name}: {exc}") from exc
         seq = self._image.put(msg.encode(self._buf), stamp_ns)
         self._info.put(self.model.camera_info(stamp_ns, self.frame_id).encode(), stamp_ns)
         if self._jpeg is not None and array.dtype == np.uint8:
@@ -190,10 +212,11 @@ class PosePublisher:
     """PoseStamped on ``<ns>/mocap/<body>/pose``: reliable, never dropped, sent at once (express).
 
     Poses are published in the mocap system's own frame (``frame_id`` ``mocap``), as a mocap
-    driver would; consumers map them into the world with ``T_world_mocap``.
+    driver would; consumers map them into the world with ``T_world_mocap``. A lost body is
+    published as a NaN pose (:meth:`publish` with None).
     """
 
-    def __init__(self, session: zenoh.Session, keys: Keys, body: str, frame_id: str = "mocap") -> None:
+    def __init__(self, session: zenoh.Session, keys: Keys, body: str, frame_id: str = MOCAP_FRAME_ID) -> None:
         self.key = keys.mocap_pose(body)
         self.frame_id = frame_id
         self._pub = BusPublisher(session, self.key, PoseStamped, reliable=True, drop_when_congested=False, express=True)
@@ -203,9 +226,14 @@ class PosePublisher:
     def has_subscribers(self) -> bool:
         return has_subscribers(self._pub)
 
-    def publish(self, stamp_ns: int, T_mocap_body: Transform) -> int:  # noqa: N803
+    def publish(self, stamp_ns: int, T_frame_body: Transform | None) -> int:  # noqa: N803
+        """Publish a pose in this publisher's frame, or "lost" (NaN) for None; returns the sequence number."""
+        if T_frame_body is None:
+            msg = PoseStamped(Header(stamp_ns, self.frame_id), (_NAN,) * 3, (_NAN,) * 4)
+        else:
+            msg = PoseStamped.from_transform(stamp_ns, self.frame_id, T_frame_body)
         with self._lock:
-            return self._pub.put(PoseStamped.from_transform(stamp_ns, self.frame_id, T_mocap_body).encode(), stamp_ns)
+            return self._pub.put(msg.encode(), stamp_ns)
 
     def close(self) -> None:
         self._pub.close()

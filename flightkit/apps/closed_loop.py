@@ -7,11 +7,11 @@
    ``VISO_TYPE`` and the ``EK3_SRC1_*`` sources = ExternalNav);
 2. one bus session carrying the simulated mocap (published in the mocap frame, used **only to
    score** the flight and to give the VO its start pose) and the simulated camera (colour +
-   depth, :class:`~capture.sources.sim.SimCameraPublisher`);
+   depth), both from :class:`~flightkit.sim.publish.SimLabPublishers`;
 3. :class:`~estimation.live.LiveVo` on those frames, publishing ``<ns>/odometry/<method>`` and
    feeding ``send_vision_pose`` over the real MAVLink link; it starts once the vehicle is
    airborne (the camera sits below the body's origin and cannot see the floor standing on it);
-4. the flight runner flying the plan with :class:`~flightkit.link.pose_source.TelemetryPoseSource`
+4. the flight runner flying the plan with :class:`~flightkit.mocap.telemetry_source.TelemetryPoseSource`
    as its position feedback (the autopilot's own, VO-fused estimate) and the controller in
    ``local_ned`` output mode.
 
@@ -280,17 +280,17 @@ async def fly_closed_loop(
     Raises:
         SafetyAbort: a preflight check failed. LinkError / BusError: the set-up failed.
     """
-    from capture.config import CaptureConfig
-    from capture.sources.sim import SimCameraPublisher
     from estimation.live import LiveVo, LiveVoConfig
     from flightkit.bus.keys import Keys
     from flightkit.bus.session import open_session
+    from flightkit.bus.streams import CameraStreamSelection
+    from flightkit.frames import WorldFrames
     from flightkit.link import open_link
-    from flightkit.link.pose_source import TelemetryPoseSource
     from flightkit.mocap.bus_source import BusMocapSource
+    from flightkit.mocap.telemetry_source import TelemetryPoseSource
     from flightkit.sim.autopilot import AutopilotOptions
     from flightkit.sim.lab import SimEvent, SimLab
-    from flightkit.sim.mocap_publisher import SimMocapPublisher
+    from flightkit.sim.publish import SimLabPublishers
     from trajectories.controller import OutputFrame
     from trajectories.flightlog import read_flight_log
     from trajectories.runner import fly_plan
@@ -347,39 +347,17 @@ async def fly_closed_loop(
     cfg = dataclasses.replace(cfg, link=dataclasses.replace(cfg.link, url=lab.client_url))
     say(f"simulated {lab.personality.vehicle_name} on {lab.url}; estimator set to fuse vision ({ap.value})")
 
-    def truth() -> tuple[int, Transform]:
-        return clock.time_ns(), lab.T_world_body()
-
     session = open_session(cfg.bus)
-    mocap_pub = camera = None
+    pubs = None
     history = _PoseHistory()
     ap_err: list[tuple[float, float]] = []  # (|autopilot estimate - truth|, |estimate - VO|) while fusing
     log_path = out / "closed_loop_flight.csv"
     try:
-        T_world_mocap = cfg.mocap.T_world_mocap.to_transform()  # noqa: N806
-        mocap_pub = SimMocapPublisher(
-            session,
-            keys,
-            body,
-            truth=truth,
-            clock=clock,
-            T_world_mocap=T_world_mocap,
-            rate_hz=cfg.sim.mocap_rate_hz,
-            noise_m=cfg.sim.mocap_noise_m,
-        ).start()
-        camera = SimCameraPublisher(
-            session,
-            keys,
-            truth,
-            cam,
-            clock,
-            capture_cfg=CaptureConfig(color=True, depth=True, stereo=False, tf=False),
-        ).start()
-        say(
-            f"bus: mocap (scoring only) on {mocap_pub.key}, camera {cam.width_px}x{cam.height_px} "
-            f"at {cam.rate_hz:g} Hz"
-        )
-        mocap = BusMocapSource(session, keys, clock, T_world_mocap)
+        streams = CameraStreamSelection(color=True, depth=True, stereo=False, tf=False)
+        pubs = SimLabPublishers(lab, cfg, session, camera=True, streams=streams).start()
+        say(f"bus: mocap (scoring only) and camera {cam.width_px}x{cam.height_px} at {cam.rate_hz:g} Hz on "
+            f"{', '.join(pubs.keys)}")
+        mocap = BusMocapSource(session, keys, clock, WorldFrames(cfg.mocap.T_world_mocap.to_transform()))
         link = open_link(cfg.link, ap, clock)
         async with mocap, link:
             feedback = TelemetryPoseSource(link, clock, body)
@@ -443,10 +421,8 @@ async def fly_closed_loop(
             report.vo = vo.stats()
             vo_est = vo.estimates()
     finally:
-        if camera is not None:
-            camera.stop()
-        if mocap_pub is not None:
-            mocap_pub.stop()
+        if pubs is not None:
+            pubs.stop()
         session.close()
         lab.stop()
 

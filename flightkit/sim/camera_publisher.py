@@ -5,7 +5,7 @@ vehicle's ground-truth pose at the configured rate on the injected clock and pub
 
     <ns>/camera/color/image        sensor_msgs/Image rgb8          + <ns>/camera/color/camera_info
     <ns>/camera/depth/image        sensor_msgs/Image 16UC1 (mm)    + <ns>/camera/depth/camera_info
-    <ns>/camera/left|right/image   sensor_msgs/Image mono8 (rectified pair; [capture] stereo = true)
+    <ns>/camera/left|right/image   sensor_msgs/Image mono8 (rectified pair; ``streams.stereo``)
     <ns>/tf                        tf2_msgs/TFMessage: base_link -> camera (extrinsics) and
                                    world -> camera_gt (the exact pose each frame was rendered from)
 
@@ -20,48 +20,42 @@ faster than the renderer the publisher skips the frames it could not render (cou
 :class:`~flightkit.clock.LockstepClock` time stands still while rendering, so every due
 frame is published exactly.
 """
-
 from __future__ import annotations
 
 import logging
 import math
 import threading
-from collections.abc import Callable
-from types import TracebackType
 from typing import Self
 
 import cv2
 import numpy as np
 import zenoh
 
-from capture.config import CaptureConfig
-from capture.streams import CameraModel, CameraStream, TfPublisher, optical_frame_id
 from flightkit.bus.keys import Keys
+from flightkit.bus.streams import CameraModel, CameraStream, CameraStreamSelection, TfPublisher, optical_frame_id
 from flightkit.clock import Clock, sleep_until
 from flightkit.config import CameraConfig
-from flightkit.errors import CaptureError
-from flightkit.frames import Transform
+from flightkit.errors import BusError
+from flightkit.frames import WORLD_FRAME_ID, Transform
+from flightkit.lifetime import Running
 from flightkit.sim.camera import PinholeModel, Scene, SimCamera
+from flightkit.sim.mocap import TruthFn
 
-__all__ = ["SimCameraPublisher", "SimCameraService", "TruthFn", "start_sim_camera"]
+__all__ = ["SimCameraPublisher"]
 
 logger = logging.getLogger(__name__)
 
-TruthFn = Callable[[], tuple[int, Transform]]
-"""Returns ``(stamp_ns, T_world_body)``: the vehicle's true pose now (same as the mocap publisher's)."""
 
-
-class SimCameraPublisher:
+class SimCameraPublisher(Running):
     """Publish simulated camera streams on the bus.
 
     Args:
         session: an open Zenoh session.
         keys: the vehicle's namespace.
-        lab_truth_fn: ``() -> (stamp_ns, T_world_body)``, e.g.
-            ``lambda: (clock.time_ns(), lab.T_world_body())``.
+        truth: clock time -> the vehicle's true ``T_world_body``, e.g. ``lab.T_world_body``.
         camera_cfg: resolution (320x240 to 848x480 in practice), rate, intrinsics, extrinsics.
-        clock: the simulation's clock (the rate is in its time).
-        capture_cfg: which streams (colour, depth, stereo, tf, JPEG); defaults when None.
+        clock: the simulation's clock (the rate is in its time; frames are stamped with it).
+        streams: which streams (colour, depth, stereo, tf, JPEG); defaults when None.
         scene: what to render (default: the lab with textured boxes).
 
     Use :meth:`start`/:meth:`stop` (or ``with``); :meth:`publish_at` renders and publishes
@@ -72,17 +66,17 @@ class SimCameraPublisher:
         self,
         session: zenoh.Session,
         keys: Keys,
-        lab_truth_fn: TruthFn,
+        truth: TruthFn,
         camera_cfg: CameraConfig,
         clock: Clock,
         *,
-        capture_cfg: CaptureConfig | None = None,
+        streams: CameraStreamSelection | None = None,
         scene: Scene | None = None,
     ) -> None:
-        cap = capture_cfg or CaptureConfig()
+        cap = streams or CameraStreamSelection()
         if not (cap.color or cap.depth or cap.stereo):
-            raise CaptureError("no camera stream enabled; set capture.color, capture.depth or capture.stereo to true")
-        self._truth = lab_truth_fn
+            raise BusError("no camera stream enabled; set capture.color, capture.depth or capture.stereo to true")
+        self._truth = truth
         self._clock = clock
         self._keys = keys
         self.rate_hz = camera_cfg.rate_hz
@@ -147,7 +141,7 @@ class SimCameraPublisher:
                 stamp_ns,
                 [
                     (f"{ns}/base_link", optical_frame_id(self._keys, "color"), self.T_body_camera),
-                    ("world", f"{ns}/camera_gt", T_world_camera),
+                    (WORLD_FRAME_ID, f"{ns}/camera_gt", T_world_camera),
                 ],
             )
         with self._cond:
@@ -165,14 +159,14 @@ class SimCameraPublisher:
         """Block until at least ``count`` frames were published (wall-clock timeout); returns the count.
 
         Raises:
-            CaptureError: not reached within ``timeout_s``, or the publisher thread failed.
+            BusError: not reached within ``timeout_s``, or the publisher thread failed.
         """
         with self._cond:
             ok = self._cond.wait_for(lambda: self.frames_published >= count or self.error is not None, timeout_s)
             if self.error is not None:
-                raise CaptureError(f"the simulated camera stopped: {self.error}") from self.error
+                raise BusError(f"the simulated camera stopped: {self.error}") from self.error
             if not ok:
-                raise CaptureError(
+                raise BusError(
                     f"the simulated camera published {self.frames_published} of {count} frames within "
                     f"{timeout_s:g} s; is the clock running?"
                 )
@@ -213,8 +207,8 @@ class SimCameraPublisher:
                 sleep_until(self._clock, t0 + n * period, self._stop)
                 if self._stop.is_set():
                     break
-                stamp_ns, T_world_body = self._truth()  # noqa: N806
-                self.publish_at(stamp_ns, T_world_body)
+                now_s = self._clock.monotonic_s()
+                self.publish_at(self._clock.time_ns(), self._truth(now_s))
                 n += 1
                 behind = self._clock.monotonic_s() - (t0 + n * period)
                 if behind > period and not lockstep:
@@ -232,48 +226,3 @@ class SimCameraPublisher:
                 with self._cond:
                     self.error = exc
                     self._cond.notify_all()
-
-    def __enter__(self) -> Self:
-        return self.start()
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.stop()
-
-
-class SimCameraService:
-    """A :class:`SimCameraPublisher` with the Zenoh session it opened; :meth:`stop` closes both."""
-
-    def __init__(self, session: zenoh.Session, publisher: SimCameraPublisher) -> None:
-        self.session = session
-        self.publisher = publisher
-
-    def stop(self) -> None:
-        self.publisher.stop()
-        self.session.close()
-
-
-def start_sim_camera(lab: object, lab_cfg: object) -> SimCameraService:
-    """Start publishing the camera of a running :class:`~flightkit.sim.lab.SimLab` on the bus
-    (session from ``lab_cfg.bus``, streams from ``[camera]`` and ``[capture]``); returns immediately.
-
-    Raises:
-        BusError: the session cannot be opened. CaptureError: no stream is enabled.
-    """
-    from flightkit.bus.session import open_session
-    from flightkit.config import LabConfig
-    from flightkit.sim.lab import SimLab
-
-    assert isinstance(lab, SimLab) and isinstance(lab_cfg, LabConfig)
-    clock = lab.clock
-    session = open_session(lab_cfg.bus)
-    try:
-        pub = SimCameraPublisher(
-            session, Keys(lab_cfg.vehicle.namespace), lambda: (clock.time_ns(), lab.T_world_body()),
-            lab_cfg.camera, clock, capture_cfg=lab_cfg.section("capture", CaptureConfig),
-        ).start()
-    except BaseException:
-        session.close()
-        raise
-    return SimCameraService(session, pub)

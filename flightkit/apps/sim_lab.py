@@ -1,0 +1,98 @@
+"""``flightkit sim``: the simulated lab served to other processes until stopped.
+
+:func:`serve_sim_lab` runs a :class:`~flightkit.sim.lab.SimLab` (its autopilot on a real UDP
+port) and publishes its mocap and camera on the bus (:class:`~flightkit.sim.publish.SimLabPublishers`,
+camera streams from the ``[capture]`` section), until ``stop`` is set.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from flightkit.bus.streams import CameraStreamSelection
+from flightkit.config import Autopilot, LabConfig
+from flightkit.sim.autopilot import AutopilotOptions
+from flightkit.sim.lab import SimEvent, SimLab
+from flightkit.sim.publish import SimLabPublishers
+
+__all__ = ["SimLabServed", "camera_streams", "serve_sim_lab"]
+
+
+def camera_streams(lab_cfg: LabConfig) -> CameraStreamSelection:
+    """Which camera streams the lab's ``[capture]`` section asks for."""
+    from capture.config import CaptureConfig
+
+    return lab_cfg.section("capture", CaptureConfig).streams()
+
+
+@dataclass(frozen=True, slots=True)
+class SimLabServed:
+    """What :func:`serve_sim_lab` started, handed to ``on_ready``.
+
+    Attributes:
+        lab: the running lab.
+        keys: the bus keys its mocap and camera publish on (empty without them).
+        camera_error: why the camera could not start ("" when it runs or was not asked for).
+    """
+
+    lab: SimLab
+    keys: tuple[str, ...]
+    camera_error: str = ""
+
+
+def serve_sim_lab(
+    lab_cfg: LabConfig,
+    options: AutopilotOptions,
+    stop: threading.Event,
+    *,
+    autopilot: Autopilot | str | None = None,
+    mocap: bool = True,
+    camera: bool = True,
+    on_event: Callable[[SimEvent], None] | None = None,
+    on_ready: Callable[[SimLabServed], None] | None = None,
+) -> None:
+    """Run the simulated lab until ``stop`` is set; blocks.
+
+    Args:
+        lab_cfg: the lab (``sim`` speed and mocap, ``camera``, ``bus``, ``vehicle``).
+        options: the autopilot's endpoint, readiness, heading offset and signing key.
+        stop: set it (e.g. on Ctrl-C) to stop.
+        autopilot: overrides ``vehicle.autopilot``.
+        mocap, camera: publish them on the bus (the camera only when ``camera.enabled``).
+        on_event: called with every simulator event (from simulator threads).
+        on_ready: called once everything runs.
+
+    Raises:
+        EndpointError: the autopilot's port is in use. BusError: the bus cannot be opened.
+    """
+    from flightkit.bus.session import open_session
+    from flightkit.clock import SimClock
+    from flightkit.errors import FlightkitError
+
+    lab = SimLab(lab_cfg, autopilot=autopilot, clock=SimClock(lab_cfg.sim.speed), options=options)
+    if on_event is not None:
+        lab.events.append(on_event)
+    with lab:
+        pubs: SimLabPublishers | None = None
+        camera_error = ""
+        if mocap or camera:
+            session = open_session(lab_cfg.bus)
+            use_camera = camera and lab_cfg.camera.enabled
+            try:
+                pubs = SimLabPublishers(
+                    lab, lab_cfg, session, camera=use_camera, streams=camera_streams(lab_cfg), owns_session=True
+                )
+            except FlightkitError as exc:  # the sim still runs without the camera
+                camera_error = str(exc)
+                pubs = SimLabPublishers(lab, lab_cfg, session, camera=False, owns_session=True)
+            pubs.start()
+        try:
+            if on_ready is not None:
+                on_ready(SimLabServed(lab, tuple(pubs.keys) if pubs is not None else (), camera_error))
+            while not stop.wait(0.5):
+                pass
+        finally:
+            if pubs is not None:
+                pubs.stop()
