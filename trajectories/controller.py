@@ -62,7 +62,7 @@ class ControllerConfig:
     integral_limit_m_s: float = setting(0.2, min=0.0, max=5.0, help="largest integral contribution, m/s")
     kp_yaw: float = setting(1.0, min=0.0, max=20.0, help="yaw gain, 1/s")
     max_horizontal_m_s: float = setting(1.0, min=0.01, max=20.0, help="horizontal speed limit")
-    max_vertical_m_s: float = setting(0.3, min=0.01, max=10.0, help="vertical speed limit")
+    max_vertical_m_s: float = setting(0.4, min=0.01, max=10.0, help="vertical speed limit")
     max_yaw_rate_rad_s: float = setting(1.0, min=0.01, max=10.0, help="yaw rate limit")
     feedforward: bool = setting(True, help="add the reference velocity and yaw rate (false: P-only law)")
     output_frame: OutputFrame = setting(OutputFrame.BODY, help="body or local_ned")

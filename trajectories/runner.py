@@ -78,6 +78,10 @@ logger = logging.getLogger(__name__)
 # plan's rate, as on PX4.
 _ARDUPILOT_LIFTOFF_M = 0.3
 
+REFERENCE_HEADROOM = 0.8
+"""Take-off, transit and landing references move at most this fraction of the controller's speed
+limits, so the position feedback keeps authority to correct the lag (docs/flying.md)."""
+
 _OUTCOME = {
     Action.ABORT: "landed_early",
     Action.LAND: "landed_early",
@@ -184,6 +188,7 @@ class FlightRunner:
         self.autopilot = autopilot
         self.clock = clock
         self.settings = settings or PlanSettings()
+        self._headroom_warned: set[str] = set()
         self.controller = VelocityController(controller or ControllerConfig())
         # lift-off is pure feed-forward (see _Climb): it uses it even under the P-only law
         self._lift_controller = VelocityController(
@@ -672,7 +677,7 @@ class FlightRunner:
         await self._run(lambda: self._takeoff(height_m, climb_m_s))
 
     async def _takeoff(self, height_m: float, climb_m_s: float | None) -> None:
-        climb = climb_m_s or self.settings.climb_m_s
+        climb = self._vertical_rate(climb_m_s or self.settings.climb_m_s, "climb_m_s")
         pos, yaw = self.current_pose()
         self.airborne = True
         if self.autopilot is Autopilot.ARDUPILOT:
@@ -752,7 +757,7 @@ class FlightRunner:
         else:
             pat = Waypoints(
                 [start, pos_m],
-                speed_m_s or self.settings.transit_speed_m_s,
+                self._transit_speed(start, pos_m, speed_m_s or self.settings.transit_speed_m_s),
                 self.settings.accel_m_s2,
                 syaw,
                 end_yaw_rad=end_yaw,
@@ -761,6 +766,34 @@ class FlightRunner:
             )
         await self._run(lambda: self._track(pat, "goto"))
         self._remember(pat)
+
+    def _vertical_rate(self, rate_m_s: float, name: str) -> float:
+        """``rate_m_s`` capped at :data:`REFERENCE_HEADROOM` of the vertical speed limit (warned once)."""
+        cap = REFERENCE_HEADROOM * self.controller.config.max_vertical_m_s
+        if rate_m_s <= cap:
+            return rate_m_s
+        if name not in self._headroom_warned:
+            self._headroom_warned.add(name)
+            logger.warning(
+                "plan %s %.2f m/s leaves the controller no room to correct below max_vertical_m_s %.2f m/s; "
+                "flying %.2f m/s (raise [controller] max_vertical_m_s or lower %s)",
+                name, rate_m_s, self.controller.config.max_vertical_m_s, cap, name,
+            )
+        return cap
+
+    def _transit_speed(self, start: Vec3, end: Vec3, speed_m_s: float) -> float:
+        """The speed along a straight transit that keeps both its horizontal and vertical parts
+        within :data:`REFERENCE_HEADROOM` of the controller's limits."""
+        c = self.controller.config
+        dist = math.dist(start, end)
+        horizontal = math.hypot(end[0] - start[0], end[1] - start[1]) / dist
+        vertical = abs(end[2] - start[2]) / dist
+        cap = math.inf
+        if horizontal > 0.0:
+            cap = REFERENCE_HEADROOM * c.max_horizontal_m_s / horizontal
+        if vertical > 0.0:
+            cap = min(cap, REFERENCE_HEADROOM * c.max_vertical_m_s / vertical)
+        return min(speed_m_s, cap)
 
     def _remember(self, pattern: Pattern) -> None:
         end = pattern.reference(pattern.duration_s)
@@ -798,7 +831,8 @@ class FlightRunner:
         pos, yaw = self.current_pose()
         floor = self.settings.floor_m
         if self.link.telemetry.armed and pos[2] > floor + 0.12:
-            pat = Land(pos, self.settings.descent_m_s, floor, 0.3, self.settings.accel_m_s2, yaw)
+            descent = self._vertical_rate(self.settings.descent_m_s, "descent_m_s")
+            pat = Land(pos, descent, floor, 0.3, self.settings.accel_m_s2, yaw)
             # the reference reaches below the floor to keep pressing down; the phase ends near
             # the floor (or on touchdown) and the autopilot's LAND finishes the touchdown
             await self._track(

@@ -109,10 +109,11 @@ def test_circle_tracks_within_bounds_and_looks_inward(autopilot: str, tmp_path: 
     assert pat.rms_error_m < RMS_BOUND_M, summary.format_table()
     assert pat.max_error_m < MAX_BOUND_M, summary.format_table()
     assert summary.phase("takeoff").max_error_m < MAX_BOUND_M
-    # Against the floor-clamped reference. The descent (0.3 m/s) runs at the vertical speed limit,
-    # so the P term has no authority left: the velocity lag (~0.08 m) stays, and so does any lag
-    # built while a loaded machine held a cycle at the start of the descent (0.22 m seen).
-    assert summary.phase("land").max_error_m < 0.25
+    # Every phase tracks within the pattern's bounds, the landing included (against the
+    # floor-clamped reference): its descent keeps headroom below the vertical speed limit.
+    for phase in ("takeoff", "goto", "land"):
+        assert summary.phase(phase).rms_error_m < RMS_BOUND_M, summary.format_table()
+        assert summary.phase(phase).max_error_m < MAX_BOUND_M, summary.format_table()
 
     # the flown path, from the log: a 1 m circle at 1.5 m, all the way round, facing the centre
     r = pattern_rows(summary.log_path or "")

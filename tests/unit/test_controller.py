@@ -43,16 +43,16 @@ def test_p_only_law_ignores_reference_velocity_and_yaw_rate() -> None:
 
 
 def test_limits_keep_horizontal_direction_and_clip_vertical() -> None:
-    c = world()  # lab defaults: 1.0 m/s horizontal, 0.3 m/s vertical
+    c = world()  # defaults: 1.0 m/s horizontal, 0.4 m/s vertical
     out = c.step(ref(pos=(3.0, 4.0, 3.0)), (0.0, 0.0, 1.0), 0.0, 0.01)
     vx, vy, vz = out.vel_world_m_s
     assert math.hypot(vx, vy) == pytest.approx(1.0)
     assert vy / vx == pytest.approx(4.0 / 3.0)
-    assert vz == pytest.approx(0.3)
+    assert vz == pytest.approx(0.4)
     assert out.saturated
     down = c.step(ref(pos=(0.0, 0.0, 0.0)), (0.0, 0.0, 2.0), 0.0, 0.01)
-    assert down.vel_world_m_s[2] == pytest.approx(-0.3)
-    out.setpoint.check_limits(1.0, 0.3, 1.0)  # never above the configured limits
+    assert down.vel_world_m_s[2] == pytest.approx(-0.4)
+    out.setpoint.check_limits(1.0, 0.4, 1.0)  # never above the configured limits
 
 
 @pytest.mark.parametrize("yaw", [0.0, 0.7, math.pi / 2, -2.5, math.pi])

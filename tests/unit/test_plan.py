@@ -24,7 +24,7 @@ def test_circle_example_is_the_lab_circle() -> None:
     assert r0.pos_m == pytest.approx((-1.0, 0.0, 1.5))
     assert r0.yaw_rad == pytest.approx(0.0)  # looking inward from (-1, 0)
     assert pat.lap_duration_s == pytest.approx(40.0, abs=0.5)
-    assert plan.controller.max_horizontal_m_s == 1.0 and plan.controller.max_vertical_m_s == 0.3
+    assert plan.controller.max_horizontal_m_s == 1.0 and plan.controller.max_vertical_m_s == 0.4
     assert plan.controller.output_frame is OutputFrame.BODY
 
 
