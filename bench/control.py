@@ -215,16 +215,16 @@ async def _hover(
     clock = WallClock()
     async with open_link(cfg.link, cfg.vehicle.autopilot, clock) as link, open_lab_mocap(cfg, clock) as mocap:
         tap = Tap(link, mocap, cfg.mocap.body, send_now)
-        runner = FlightRunner(tap, mocap, body=cfg.mocap.body, autopilot=cfg.vehicle.autopilot, clock=clock)
+        runner = FlightRunner(tap, mocap, body=cfg.mocap.body, clock=clock)
         try:
             await runner.preflight()
             await runner.start(arm=True)
             await runner.takeoff(1.0, 0.5)
             tap.set.clear()
             tap.called_s.clear()
-            t0 = len(runner._cycle_s)
+            t0 = len(runner.loop.cycle_s)
             await runner.hold(hold_s)
-            cycles = (runner._cycle_s[t0:], runner._cycle_cpu_s[t0:])
+            cycles = (runner.loop.cycle_s[t0:], runner.loop.cycle_cpu_s[t0:])
             n_set = len(tap.set)
             await runner.land()
         finally:

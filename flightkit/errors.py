@@ -10,6 +10,7 @@
     │   └── CommandRejected    the autopilot answered "no" (carries its reason and STATUSTEXT)
     ├── FrameError             a pose in a frame that cannot be placed in the world
     ├── SetpointError          a setpoint that is out of range or malformed
+    ├── PlanError              a plan or pattern that cannot be flown as given (geofence, laps)
     ├── MocapError             mocap source failures
     │   └── MocapBodyMissing   the rigid body is not visible (carries the bodies that are)
     ├── BusError               Zenoh session or encoding problems
@@ -39,6 +40,7 @@ __all__ = [
     "LinkTimeout",
     "MocapBodyMissing",
     "MocapError",
+    "PlanError",
     "ProtocolError",
     "SafetyAbort",
     "SetpointError",
@@ -127,6 +129,11 @@ class FrameError(FlightkitError):
 
 class SetpointError(FlightkitError):
     """A setpoint is malformed or outside the configured limits."""
+
+
+class PlanError(FlightkitError):
+    """A flight plan or pattern cannot be flown as given (it leaves the geofence, its laps do
+    not close); the message names the part and what to change."""
 
 
 class MocapError(FlightkitError):

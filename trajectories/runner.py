@@ -1,22 +1,17 @@
-"""The flight runner: sequences phases, runs the control loop, applies the supervisor's decisions.
+"""The phase sequencer of one flight: take-off, hold, goto, pattern, landing.
 
 :class:`FlightRunner` owns one flight on an already connected :class:`VehicleLink` and a
 running :class:`MocapSource`. Each blocking method (:meth:`~FlightRunner.takeoff`,
 :meth:`~FlightRunner.hold`, :meth:`~FlightRunner.fly`, :meth:`~FlightRunner.goto`,
-:meth:`~FlightRunner.land`) tracks a pattern until it is done. Every cycle:
+:meth:`~FlightRunner.land`) builds a reference and has the vehicle's
+:class:`~trajectories.control_loop.ControlLoop` track it until it is done; a fault ends the
+phase and the :class:`~trajectories.fault_reactor.FaultReactor` reacts (hold then land, land,
+hand over to the autopilot's LAND, release to the pilot, or stop) and raises
+:class:`~flightkit.errors.SafetyAbort`.
 
-1. read the newest mocap pose of the body (age since the newest *valid* pose);
-2. compute the reference at pattern time t (pattern time stands still while holding);
-3. ask the supervisor (:func:`trajectories.supervisor.supervise`);
-4. on CONTINUE run the controller and replace the streamed setpoint; on HOLD send zero
-   velocity; anything else ends the phase: the runner reacts (hold then land, land, hand
-   over to the autopilot's LAND, release to the pilot, or stop) and raises
-   :class:`~flightkit.errors.SafetyAbort`;
-5. log the cycle.
-
-The loop is driven by mocap: it wakes when a new pose arrives (so the setpoint follows the
-sample by microseconds), and at least every ``1 / rate_hz`` seconds of clock time so stale
-mocap is still noticed.
+The runner does not know which firmware it flies: it asks the link's
+:class:`~flightkit.link.base.FirmwareTraits` (control mode, setpoint pre-stream, lift-off by
+the autopilot).
 
 :func:`fly_plan` is the one-call entry point (the CLI and ``make demo`` use it).
 """
@@ -26,45 +21,28 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
-import functools
-import inspect
 import logging
 import math
 import signal
 import time
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, cast
 
 from flightkit.clock import Clock, WallClock
-from flightkit.config import Autopilot, LabConfig
-from flightkit.errors import (
-    CommandRejected,
-    LinkError,
-    LinkTimeout,
-    MocapBodyMissing,
-    MocapError,
-    SafetyAbort,
-)
-from flightkit.link.base import FlightMode, LandedState, VehicleLink, VelocitySetpoint, offboard_mode_for
-from flightkit.mocap.base import MocapPose, MocapSource
+from flightkit.config import LabConfig
+from flightkit.errors import CommandRejected, LinkError, LinkTimeout, MocapError, PlanError, SafetyAbort
+from flightkit.link.base import LandedState, VehicleLink
+from flightkit.mocap.base import MocapSource
 from trajectories.base import Pattern, PiecewisePattern, Reference, Turn, Vec3
 from trajectories.circle import Circle
+from trajectories.control_loop import ControlLoop, LiftOff, Status
 from trajectories.controller import ControllerConfig, VelocityController
-from trajectories.flightlog import FlightLog, FlightSummary, PhaseStats
+from trajectories.fault_reactor import FaultReactor
+from trajectories.flightlog import FlightLog, FlightSummary
 from trajectories.hold import Hold
 from trajectories.plan import Plan, PlanSettings
-from trajectories.supervisor import (
-    Action,
-    Decision,
-    Fault,
-    FaultKind,
-    SafetyConfig,
-    SupervisorInput,
-    preflight_problems,
-    supervise,
-)
+from trajectories.supervisor import Action, SafetyConfig, preflight_problems
 from trajectories.takeoff import Land, Takeoff
 from trajectories.waypoints import Waypoints
 
@@ -72,69 +50,22 @@ __all__ = ["FlightRunner", "Status", "fly_plan", "open_lab_mocap", "pattern_in_f
 
 logger = logging.getLogger(__name__)
 
-# ArduCopter leaves the ground only on its own take-off command, and climbs at its own rate
-# (WPNAV_SPEED_UP, 2.5 m/s by default: above the supervisor's 2 m/s limit on a tall take-off).
-# So it lifts the vehicle this high above its start, and our controller climbs the rest at the
-# plan's rate, as on PX4.
-_ARDUPILOT_LIFTOFF_M = 0.3
-
 REFERENCE_HEADROOM = 0.8
 """Take-off, transit and landing references move at most this fraction of the controller's speed
 limits, so the position feedback keeps authority to correct the lag (docs/flying.md)."""
 
-_OUTCOME = {
-    Action.ABORT: "landed_early",
-    Action.LAND: "landed_early",
-    Action.LAND_AUTOPILOT: "autopilot_landing",
-    Action.RELEASE: "released",
-    Action.STOP: "stopped",
-}
-
-
-@dataclass(frozen=True, slots=True)
-class Status:
-    """A snapshot for the live status line (given to ``on_status`` a few times a second).
-
-    Attributes:
-        t_s: flight time. phase: current phase. lap / laps: 1-based lap of the pattern.
-        pos_m: measured position (world ENU). err_m: tracking error. rate_hz: control rate.
-        action: supervisor action name. message: extra text (e.g. a countdown).
-    """
-
-    t_s: float
-    phase: str
-    lap: int = 0
-    laps: int = 0
-    pos_m: Vec3 | None = None
-    err_m: float = math.nan
-    rate_hz: float = math.nan
-    action: str = "CONTINUE"
-    message: str = ""
-
-    def line(self) -> str:
-        p = (
-            "(  ---,   ---,   ---)"
-            if self.pos_m is None
-            else "({:5.2f}, {:5.2f}, {:5.2f})".format(*self.pos_m)
-        )
-        lap = f"lap {self.lap}/{self.laps}" if self.laps else "       "
-        extra = f"  {self.message}" if self.message else ""
-        act = "" if self.action == "CONTINUE" else f"  [{self.action}]"
-        return (
-            f"t={self.t_s:7.2f}s  {self.phase:<10} {lap}  pos {p}  err {self.err_m:6.3f} m  "
-            f"{self.rate_hz:5.0f} Hz{act}{extra}"
-        )
-
 
 def with_laps(pattern: Pattern, laps: int) -> Pattern:
-    """The same pattern flown ``laps`` times (raises ValueError if its laps do not close)."""
+    """The same pattern flown ``laps`` times (PlanError if its laps do not close)."""
     if laps == pattern.laps:
         return pattern
     if isinstance(pattern, Circle):
         return dataclasses.replace(pattern, laps=laps)
     if isinstance(pattern, PiecewisePattern):
         return PiecewisePattern(pattern.name, pattern.segments, laps)
-    raise ValueError(f"cannot change the lap count of a {type(pattern).__name__}; build it with laps={laps}")
+    raise PlanError(
+        f"cannot change the lap count of a {type(pattern).__name__}; build it with laps={laps} instead"
+    )
 
 
 def pattern_in_fence(pattern: Pattern, safety: SafetyConfig, step_s: float = 0.05) -> Reference | None:
@@ -149,18 +80,12 @@ def pattern_in_fence(pattern: Pattern, safety: SafetyConfig, step_s: float = 0.0
     return None
 
 
-class _FaultExit(Exception):
-    def __init__(self, decision: Decision) -> None:
-        self.decision = decision
-        super().__init__(decision.action.name)
-
-
 class FlightRunner:
     """One flight on a connected link and a running mocap source.
 
     Args:
         link: connected vehicle link. mocap: running mocap source (same clock as the link).
-        body: mocap rigid-body name of the vehicle. autopilot: its firmware.
+        body: mocap rigid-body name of the vehicle.
         clock: the clock every wait uses. settings / controller / safety: plan sections.
         log: flight log to write each cycle to (None: no log).
         on_status: called with a :class:`Status` about 5 times a second (from the event loop).
@@ -173,7 +98,6 @@ class FlightRunner:
         mocap: MocapSource,
         *,
         body: str,
-        autopilot: Autopilot,
         clock: Clock,
         settings: PlanSettings | None = None,
         controller: ControllerConfig | None = None,
@@ -183,123 +107,61 @@ class FlightRunner:
         name: str = "flight",
     ) -> None:
         self.link = link
-        self.mocap = mocap
-        self.body = body
-        self.autopilot = autopilot
         self.clock = clock
         self.settings = settings or PlanSettings()
-        self._headroom_warned: set[str] = set()
-        self.controller = VelocityController(controller or ControllerConfig())
-        # lift-off is pure feed-forward (see _Climb): it uses it even under the P-only law
-        self._lift_controller = VelocityController(
-            dataclasses.replace(self.controller.config, feedforward=True)
-        )
         self.safety = safety or SafetyConfig()
-        self.log = log
-        self.on_status = on_status
-        self.control_mode = offboard_mode_for(autopilot)
-        self._push = _immediate_setter(link)
+        self.traits = link.info.traits
         self.summary = FlightSummary(plan=name, log_path=str(log.path) if log else None)
-        self.interrupted = asyncio.Event()
-        self.in_control = False  # we command the vehicle (armed, in the offboard mode)
-        self.airborne = False
-        self.ended = False  # a fault ended the flight (landed, released or stopped)
-        self._t0 = clock.monotonic_s()
-        self._active: set[FaultKind] = set()
-        self._last_phase = ""
-        self._cycle_s: list[float] = []  # wall time per control cycle
-        self._cycle_cpu_s: list[float] = []  # this thread's CPU time per cycle (no waits, no steal)
-        self._ticks = 0
-        self._last_status_s = -math.inf
-        self._last_valid: MocapPose | None = None
-        self._yaw_cache: tuple[int, float] = (-1, 0.0)
-        self._prev_for_speed: tuple[float, Vec3] | None = None
-        self._speed_m_s = math.nan
-        self._new_pose = asyncio.Event()
-        self._pose_task: asyncio.Task[None] | None = None
-        self._last_err = math.nan
+        ctl = VelocityController(controller or ControllerConfig())
+        self.loop = ControlLoop(
+            link,
+            mocap,
+            body=body,
+            clock=clock,
+            control_mode=self.traits.control_mode,
+            controller=ctl,
+            # lift-off is pure feed-forward (see LiftOff): it uses it even under the P-only law
+            lift_controller=VelocityController(dataclasses.replace(ctl.config, feedforward=True)),
+            safety=self.safety,
+            rate_hz=self.settings.rate_hz,
+            summary=self.summary,
+            log=log,
+            on_status=on_status,
+        )
+        self.reactor = FaultReactor(
+            self.loop, safety=self.safety, landed_timeout_s=self.settings.landed_timeout_s, land=self._controlled_land
+        )
+        self._headroom_warned: set[str] = set()
+        self._last_target: Vec3 | None = None
+        self._last_yaw: float | None = None
 
-    # ------------------------------------------------------------------ mocap
+    # ------------------------------------------------------------------ state
 
     @property
     def t_s(self) -> float:
         """Flight time, seconds since the runner was created."""
-        return self.clock.monotonic_s() - self._t0
+        return self.loop.t_s
 
-    def _start_pose_watch(self) -> None:
-        if self._pose_task is None:
-            self._pose_task = asyncio.get_running_loop().create_task(
-                self._watch_poses(), name="runner-mocap-watch"
-            )
+    @property
+    def airborne(self) -> bool:
+        """The vehicle may be off the ground (from take-off until touchdown)."""
+        return self.loop.airborne
 
-    async def _watch_poses(self) -> None:
-        try:
-            async for _ in self.mocap.poses(self.body):
-                self._new_pose.set()
-        except asyncio.CancelledError:
-            raise
-        except Exception:  # the control loop notices staleness on its own
-            logger.exception("mocap pose stream ended")
-
-    def _pose(self, now: float) -> tuple[MocapPose | None, float]:
-        """Newest valid pose and its age (inf when none)."""
-        p = self.mocap.latest(self.body)
-        if p is not None and p.valid:
-            if self._last_valid is None or p.stamp_ns != self._last_valid.stamp_ns:
-                self._update_speed(p)
-            self._last_valid = p
-        lv = self._last_valid
-        if lv is None:
-            return None, math.inf
-        return lv, max(0.0, now - lv.received_s)
-
-    def _update_speed(self, p: MocapPose) -> None:
-        t = p.stamp_ns * 1e-9
-        pos = (
-            float(p.T_world_body.translation[0]),
-            float(p.T_world_body.translation[1]),
-            float(p.T_world_body.translation[2]),
-        )
-        prev = self._prev_for_speed
-        if prev is None or t - prev[0] >= 0.05:  # 20 Hz finite difference: robust to mocap jitter
-            if prev is not None and t > prev[0]:
-                self._speed_m_s = math.dist(pos, prev[1]) / (t - prev[0])
-            self._prev_for_speed = (t, pos)
-
-    def _yaw(self, p: MocapPose) -> float:
-        if self._yaw_cache[0] != p.stamp_ns:
-            self._yaw_cache = (p.stamp_ns, p.T_world_body.yaw_rad)
-        return self._yaw_cache[1]
+    @property
+    def ended(self) -> bool:
+        """A fault ended the flight (landed, released or stopped)."""
+        return self.reactor.ended
 
     def current_pose(self) -> tuple[Vec3, float]:
         """Newest valid mocap position (world ENU) and yaw; MocapBodyMissing when there is none."""
-        p, _ = self._pose(self.clock.monotonic_s())
-        if p is None:
-            raise MocapBodyMissing(self.body, tuple(self.mocap.bodies()))
-        t = p.T_world_body.translation
-        return (float(t[0]), float(t[1]), float(t[2])), self._yaw(p)
-
-    # ------------------------------------------------------------------ faults
-
-    def _record(self, decision: Decision) -> None:
-        kinds = {f.kind for f in decision.faults}
-        for f in decision.faults:
-            if f.kind not in self._active:
-                self.summary.faults.append(f)
-                if self.log is not None:
-                    self.log.fault(f)
-                logger.warning("fault at t=%.2f s: %s: %s", f.time_s, f.kind.value, f.message)
-        self._active = kinds
-
-    def _fault(self, kind: FaultKind, message: str, action: Action) -> Decision:
-        return Decision(action, (Fault(self.t_s, kind, message, action),))
+        return self.loop.current_pose()
 
     def interrupt(self) -> None:
         """Ask the flight to land (what Ctrl-C and SIGTERM do); returns immediately."""
-        self.interrupted.set()
+        self.loop.interrupted.set()
 
     @contextlib.contextmanager
-    def signals_land(self) -> Any:
+    def signals_land(self) -> Iterator[None]:
         """While inside, SIGINT and SIGTERM make the flight land instead of killing the process.
 
         Only in the main thread (elsewhere this does nothing).
@@ -324,269 +186,6 @@ class FlightRunner:
         logger.warning("%s received: landing", signal.Signals(sig).name)
         self.interrupt()
 
-    # ------------------------------------------------------------------ the loop
-
-    async def _wait_tick(self, timeout_s: float) -> None:
-        """Until a new mocap pose arrives or ``timeout_s`` of clock time passes."""
-        if self._new_pose.is_set():
-            self._new_pose.clear()
-            return
-        if self._pose_task is None:
-            await self.clock.sleep(timeout_s)
-            return
-        sleeper = asyncio.ensure_future(self.clock.sleep(timeout_s))
-        waiter = asyncio.ensure_future(self._new_pose.wait())
-        try:
-            await asyncio.wait((sleeper, waiter), return_when=asyncio.FIRST_COMPLETED)
-        finally:
-            sleeper.cancel()
-            waiter.cancel()
-        self._new_pose.clear()
-
-    async def _track(
-        self,
-        pattern: Pattern,
-        phase: str,
-        *,
-        tolerate: Action = Action.CONTINUE,
-        until: Callable[[float, Vec3], bool] | None = None,
-        end_when: Callable[[float, Vec3], bool] | None = None,
-        floor_m: float | None = None,
-        timeout_s: float = math.inf,
-        send: bool = True,
-    ) -> None:
-        """Track ``pattern`` until it is done (and ``until(t, pos)`` holds, if given), or
-        as soon as ``end_when(t, pos)`` holds.
-
-        Faults whose action is at most ``tolerate`` are recorded but do not end the phase;
-        HOLD faults pause the pattern. Raises _FaultExit for the others. With ``send=False``
-        nothing is sent (the autopilot flies on its own; we only supervise and log). With
-        ``floor_m`` the tracking error is measured against the reference clamped to the floor
-        (a landing reference reaches below it to keep pressing down).
-        """
-        self._start_pose_watch()
-        ctl = self._lift_controller if isinstance(pattern, _Climb) else self.controller
-        ctl.reset()
-        stats = self._stats_for(phase)
-        period = 1.0 / self.settings.rate_hz
-        clock = self.clock
-        start = last = clock.monotonic_s()
-        t_pat = 0.0
-        frame = self.controller.config.output_frame.setpoint_frame.value
-        laps = pattern.laps if pattern.laps > 1 or phase == "pattern" else 0
-        lookahead = self.safety.fence_lookahead_s if self.safety.geofence.enabled else 0.0
-        while True:
-            now = clock.monotonic_s()
-            dt = now - last
-            last = now
-            c0 = time.perf_counter()
-            c0_cpu = time.thread_time()
-            pose, age = self._pose(now)
-            pos: Vec3 | None = None
-            yaw = math.nan
-            if pose is not None:
-                t = pose.T_world_body.translation
-                pos = (float(t[0]), float(t[1]), float(t[2]))
-                yaw = self._yaw(pose)
-            ref = pattern.reference(t_pat)
-            ahead = pattern.reference(t_pat + lookahead) if lookahead > 0.0 else ref
-            tel = self.link.telemetry
-            decision = supervise(
-                self.safety,
-                SupervisorInput(
-                    now - self._t0,
-                    age,
-                    tel,
-                    self.control_mode if self.in_control else None,
-                    pos,
-                    ahead.pos_m,
-                    self._speed_m_s,
-                    self.interrupted.is_set(),
-                ),
-            )
-            if decision.faults or self._active:
-                self._record(decision)
-            action = decision.action
-            if action > Action.HOLD and action <= tolerate:
-                action = (
-                    Action.HOLD if any(f.action is Action.HOLD for f in decision.faults) else Action.CONTINUE
-                )
-            err = math.nan
-            if action is Action.CONTINUE and pos is not None:
-                t_pat += dt
-                ref = pattern.reference(t_pat)
-                out = ctl.step(ref, pos, yaw, dt)
-                sp = out.setpoint
-                err = out.error_norm_m
-                if floor_m is not None and ref.pos_m[2] < floor_m:
-                    err = math.dist((ref.pos_m[0], ref.pos_m[1], floor_m), pos)
-                if send:
-                    self._push(sp)
-            elif action is Action.HOLD or (action is Action.CONTINUE and pos is None):
-                sp = self.controller.hold()
-                if send:
-                    self._push(sp)
-                if pos is not None:
-                    rz = ref.pos_m[2] if floor_m is None else max(ref.pos_m[2], floor_m)
-                    err = math.dist((ref.pos_m[0], ref.pos_m[1], rz), pos)
-            else:
-                raise _FaultExit(decision)
-            cycle_cpu = time.thread_time() - c0_cpu  # (inside the wall window, so never larger)
-            cycle = time.perf_counter() - c0
-            self._cycle_cpu_s.append(cycle_cpu)
-            self._cycle_s.append(cycle)
-            self._ticks += 1
-            if not math.isnan(err) and send:
-                stats.add(err)
-                self._last_err = err
-            if self.log is not None:
-                p = pos or (math.nan, math.nan, math.nan)
-                self.log.row(
-                    (
-                        round(now - self._t0, 6),
-                        clock.time_ns(),
-                        phase,
-                        ref.lap,
-                        action.name,
-                        *ref.pos_m,
-                        ref.yaw_rad,
-                        *ref.vel_m_s,
-                        *p,
-                        yaw,
-                        age if math.isfinite(age) else -1.0,
-                        frame,
-                        *sp.vel_m_s,
-                        sp.yaw_rad if sp.yaw_rad is not None else math.nan,
-                        sp.yaw_rate_rad_s if sp.yaw_rate_rad_s is not None else math.nan,
-                        err,
-                        cycle,
-                    )
-                )
-            if now - self._last_status_s >= 0.2:
-                self._last_status_s = now
-                self._status(phase, ref.lap + 1 if laps else 0, laps, pos, action.name)
-            stats.duration_s = stats.duration_s + dt if stats.samples > 1 else stats.duration_s
-            finished = ref.done or (until is not None and math.isinf(pattern.duration_s))
-            if (finished and (until is None or (pos is not None and until(now - start, pos)))) or (
-                end_when is not None and pos is not None and end_when(now - start, pos)
-            ):
-                if phase == "pattern":
-                    self.summary.laps_completed += pattern.laps
-                return
-            if now - start > timeout_s:
-                raise LinkTimeout(f"{phase} did not finish within {timeout_s:.0f} s", phase, timeout_s)
-            await self._wait_tick(period)
-
-    def _stats_for(self, phase: str) -> PhaseStats:
-        """The statistics entry of ``phase``: the current one if the previous phase had the same
-        name (a take-off in two steps), else a new entry (a second hold becomes ``hold_2``)."""
-        phases = self.summary.phases
-        if phases and self._last_phase == phase:
-            return phases[-1]
-        self._last_phase = phase
-        n = sum(1 for p in phases if p.name == phase or p.name.startswith(phase + "_"))
-        stats = PhaseStats(phase if n == 0 else f"{phase}_{n + 1}")
-        phases.append(stats)
-        return stats
-
-    def _status(
-        self, phase: str, lap: int, laps: int, pos: Vec3 | None, action: str, message: str = ""
-    ) -> None:
-        if self.on_status is None:
-            return
-        n = len(self._cycle_s)
-        rate = math.nan
-        if n > 10 and self._ticks > 10:
-            rate = self._rate_estimate()
-        self.on_status(Status(self.t_s, phase, lap, laps, pos, self._last_err, rate, action, message))
-
-    def _rate_estimate(self) -> float:
-        elapsed = self.t_s
-        return self._ticks / elapsed if elapsed > 0 else math.nan
-
-    # ------------------------------------------------------------------ reactions
-
-    async def _run(self, coro_fn: Callable[[], Any]) -> None:
-        """Run one phase; on a fault, react and raise SafetyAbort."""
-        if self.ended:
-            raise SafetyAbort("ended", "the flight has already ended after a fault; start a new one")
-        try:
-            await coro_fn()
-        except _FaultExit as exc:
-            await self._react(exc.decision)
-
-    async def _react(self, decision: Decision) -> None:
-        first = decision.faults[0] if decision.faults else None
-        top = max(decision.faults, key=lambda f: f.action) if decision.faults else first
-        action = decision.action
-        while True:
-            try:
-                if action is Action.ABORT:
-                    pos, yaw = self.current_pose()
-                    if self.safety.abort_hold_s > 0:
-                        await self._track(
-                            Hold(pos, yaw, self.safety.abort_hold_s), "abort_hold", tolerate=Action.ABORT
-                        )
-                    action = Action.LAND
-                    continue
-                if action is Action.LAND:
-                    await self._controlled_land(tolerate=Action.LAND)
-                elif action is Action.LAND_AUTOPILOT:
-                    await self._autopilot_land()
-                elif action in (Action.RELEASE, Action.STOP):
-                    self.in_control = False
-                    with contextlib.suppress(LinkError):
-                        await self.link.stop_setpoint_stream()
-                break
-            except _FaultExit as exc:
-                if exc.decision.action <= action:  # cannot happen with tolerate; be safe
-                    raise
-                action = exc.decision.action
-                top = max(exc.decision.faults, key=lambda f: f.action)
-        self.ended = True
-        self.summary.outcome = _OUTCOME.get(action, "landed_early")
-        kind = top.kind.value if top else "unknown"
-        msg = top.message if top else "flight ended by the supervisor"
-        raise SafetyAbort(kind, msg)
-
-    async def _autopilot_land(self) -> None:
-        """Hand over to the autopilot's LAND mode and wait for touchdown (watching heartbeat and pilot)."""
-        logger.warning("switching to the autopilot's LAND mode")
-        self.in_control = False
-        await self.link.land()
-        await self._wait_landed(watch_mode=FlightMode.LAND)
-
-    async def _wait_landed(self, watch_mode: FlightMode | None) -> None:
-        deadline = self.clock.monotonic_s() + self.settings.landed_timeout_s
-        while True:
-            tel = self.link.telemetry
-            if tel.heartbeat_age_s > self.safety.heartbeat_period_s + self.safety.heartbeat_timeout_s:
-                raise _FaultExit(
-                    self._fault(
-                        FaultKind.HEARTBEAT_LOST,
-                        f"no autopilot heartbeat for {tel.heartbeat_age_s:.2f} s while landing",
-                        Action.STOP,
-                    )
-                )
-            if not tel.armed:
-                self.airborne = False
-                return
-            if watch_mode is not None and tel.mode is not watch_mode:
-                raise _FaultExit(
-                    self._fault(
-                        FaultKind.PILOT_TAKEOVER,
-                        f"mode changed from {watch_mode.value} to {tel.mode.value} while landing",
-                        Action.RELEASE,
-                    )
-                )
-            if self.clock.monotonic_s() > deadline:
-                raise LinkTimeout(
-                    f"the vehicle did not land and disarm within {self.settings.landed_timeout_s:.0f} s",
-                    "landed",
-                    self.settings.landed_timeout_s,
-                )
-            await self.clock.sleep(0.05)
-
     # ------------------------------------------------------------------ phases
 
     async def preflight(self) -> None:
@@ -596,21 +195,15 @@ class FlightRunner:
             MocapBodyMissing: the body is not visible (the error names the visible bodies).
             SafetyAbort: another preflight check failed (reason ``"preflight"``).
         """
-        try:
-            await self.mocap.wait_for_body(self.body, self.settings.preflight_timeout_s)
-        except MocapBodyMissing:
-            raise
-        pose, _ = self._pose(self.clock.monotonic_s())
-        pos = None
-        if pose is not None:
-            t = pose.T_world_body.translation
-            pos = (float(t[0]), float(t[1]), float(t[2]))
+        loop = self.loop
+        await loop.mocap.wait_for_body(loop.body, self.settings.preflight_timeout_s)
+        pos = loop.current_position()
         problems = preflight_problems(
-            self.safety, self.body, tuple(self.mocap.bodies()), pose is not None, self.link.telemetry, pos
+            self.safety, loop.body, tuple(loop.mocap.bodies()), pos is not None, self.link.telemetry, pos
         )
         if problems:
             raise SafetyAbort("preflight", "preflight failed: " + "; ".join(problems))
-        logger.info("preflight ok: body %r at %s", self.body, pos)
+        logger.info("preflight ok: body %r at %s", loop.body, pos)
 
     async def start(self, arm: bool) -> None:
         """Start the setpoint stream and get control: arm and switch mode ourselves (``arm=True``),
@@ -619,13 +212,12 @@ class FlightRunner:
         Blocks until armed in the offboard mode. Raises CommandRejected / LinkTimeout.
         """
         link = self.link
-        self._start_pose_watch()
+        self.loop.start_pose_watch()
         await link.start_setpoint_stream(max(self.settings.rate_hz, 20.0))
-        link.set_velocity(self.controller.hold())
-        mode = self.control_mode
+        link.set_velocity(self.loop.controller.hold())
+        mode = self.traits.control_mode
         if arm:
-            # PX4 wants a second of setpoints before OFFBOARD / arming; keep them fresh meanwhile.
-            await self._keep_streaming(1.2 if self.autopilot is Autopilot.PX4 else 0.1)
+            await self._keep_streaming(self.traits.setpoint_prestream_s)
             await link.set_mode(mode)
             deadline = self.clock.monotonic_s() + 15.0
             while True:
@@ -652,93 +244,95 @@ class FlightRunner:
                         "armed",
                         self.settings.arm_timeout_s,
                     )
-                pose, _ = self._pose(self.clock.monotonic_s())
-                pos = None if pose is None else tuple(float(x) for x in pose.T_world_body.translation)
-                self._status(
+                self.loop.status(
                     "wait_pilot",
                     0,
                     0,
-                    pos,
-                    "CONTINUE",  # type: ignore[arg-type]
+                    self.loop.current_position(),
+                    "CONTINUE",
                     f"arm and switch to {mode.value}: {left:4.0f} s left",
                 )
                 await self._keep_streaming(0.2)
-        self.in_control = True
+        self.loop.in_control = True
         logger.info("armed in %s", mode.value)
 
     async def _keep_streaming(self, duration_s: float) -> None:
         end = self.clock.monotonic_s() + duration_s
         while self.clock.monotonic_s() < end:
-            self.link.set_velocity(self.controller.hold())
+            self.link.set_velocity(self.loop.controller.hold())
             await self.clock.sleep(min(0.05, duration_s))
 
     async def takeoff(self, height_m: float, climb_m_s: float | None = None) -> None:
         """Take off to ``height_m`` (world z); blocks until there (SafetyAbort on a fault)."""
-        await self._run(lambda: self._takeoff(height_m, climb_m_s))
+        await self.reactor.run(lambda: self._takeoff(height_m, climb_m_s))
 
     async def _takeoff(self, height_m: float, climb_m_s: float | None) -> None:
         climb = self._vertical_rate(climb_m_s or self.settings.climb_m_s, "climb_m_s")
         pos, yaw = self.current_pose()
-        self.airborne = True
-        if self.autopilot is Autopilot.ARDUPILOT:
-            # A velocity setpoint would cancel ArduCopter's own climb: pause the stream, command the
-            # lift-off, watch (no setpoints) until near its height, then climb the rest ourselves.
-            lift_m = max(0.2, min(height_m - pos[2], _ARDUPILOT_LIFTOFF_M))
-            lifted_z_m = pos[2] + lift_m - 0.05
-            rate_hz = max(self.settings.rate_hz, 20.0)
-            await self.link.stop_setpoint_stream()
-            try:
-                await self.link.takeoff(lift_m)
-                await self._track(
-                    _Climb(pos, yaw, 0.0),
-                    "takeoff",
-                    send=False,
-                    timeout_s=60.0,
-                    until=lambda _t, p: p[2] >= lifted_z_m,
-                )
-            except BaseException:
-                # whatever reacts (a fault's hold and land, a cancelled flight's landing) streams
-                # setpoints: the stream must run again first
-                with contextlib.suppress(LinkError):
-                    await self.link.start_setpoint_stream(rate_hz)
-                raise
-            await self.link.start_setpoint_stream(rate_hz)
+        self.loop.airborne = True
+        if self.traits.liftoff_m > 0.0:
+            await self._autopilot_liftoff(pos, yaw, max(0.2, min(height_m - pos[2], self.traits.liftoff_m)))
             pos = self.current_pose()[0]
         else:
-            await self._climb_until(pos, yaw, pos[2] + 0.08, climb)
+            # our setpoints lift it off: climb (feed-forward) until 8 cm up
+            lifted_z_m = pos[2] + 0.08
+            await self.loop.track(
+                self._liftoff_reference(pos, yaw, climb),
+                "takeoff",
+                until=lambda _t, p: p[2] >= lifted_z_m,
+                timeout_s=30.0,
+            )
         pos2, _ = self.current_pose()
         if height_m - pos2[2] > 0.02:
             pat = Takeoff((pos[0], pos[1], pos2[2]), height_m, climb, self.settings.accel_m_s2, yaw)
-            await self._track(pat, "takeoff")
+            await self.loop.track(pat, "takeoff")
             self._remember(pat)
         else:
             self._last_target, self._last_yaw = (pos[0], pos[1], height_m), yaw
 
-    async def _climb_until(self, start: Vec3, yaw: float, z_m: float, climb: float) -> None:
-        """Lift-off: command a climb (feed-forward, position held horizontally) until z >= z_m.
+    async def _autopilot_liftoff(self, pos: Vec3, yaw: float, lift_m: float) -> None:
+        """The firmware leaves the ground only on its own take-off command: pause the setpoint
+        stream (a velocity setpoint would cancel its climb), command the lift-off and watch it,
+        supervising, without sending, until near ``lift_m`` up."""
+        lifted_z_m = pos[2] + lift_m - 0.05
+        rate_hz = max(self.settings.rate_hz, 20.0)
+        await self.link.stop_setpoint_stream()
+        try:
+            await self.link.takeoff(lift_m)
+            await self.loop.track(
+                self._liftoff_reference(pos, yaw, 0.0),
+                "takeoff",
+                send=False,
+                timeout_s=60.0,
+                until=lambda _t, p: p[2] >= lifted_z_m,
+            )
+        except BaseException:
+            # whatever reacts (a fault's hold and land, a cancelled flight's landing) streams
+            # setpoints: the stream must run again first
+            with contextlib.suppress(LinkError):
+                await self.link.start_setpoint_stream(rate_hz)
+            raise
+        await self.link.start_setpoint_stream(rate_hz)
 
-        The motors spin up for a few seconds after arming; the climb reference waits for them
-        (it starts from the measured height while the vehicle is still on the ground).
-        """
-        await self._track(
-            _Climb(start, yaw, climb, self), "takeoff", until=lambda _t, p: p[2] >= z_m, timeout_s=30.0
-        )
+    def _liftoff_reference(self, pos: Vec3, yaw: float, climb_m_s: float) -> LiftOff:
+        def height() -> float | None:
+            p = self.loop.current_position()
+            return None if p is None else p[2]
+
+        return LiftOff(pos, yaw, climb_m_s, height)
 
     async def hold(self, duration_s: float, pos_m: Vec3 | None = None, yaw_rad: float | None = None) -> None:
         """Hold ``pos_m`` (default: the current reference end / position) for ``duration_s``; blocks."""
         if duration_s <= 0:
             return
         p, y = self._here(pos_m, yaw_rad)
-        await self._run(lambda: self._track(Hold(p, y, duration_s), "hold"))
+        await self.reactor.run(lambda: self.loop.track(Hold(p, y, duration_s), "hold"))
 
     def _here(self, pos_m: Vec3 | None, yaw_rad: float | None) -> tuple[Vec3, float]:
         cur, cyaw = self.current_pose()
         return (pos_m or self._last_target or cur), (
             yaw_rad if yaw_rad is not None else (self._last_yaw if self._last_yaw is not None else cyaw)
         )
-
-    _last_target: Vec3 | None = None
-    _last_yaw: float | None = None
 
     async def goto(self, pos_m: Vec3, yaw_rad: float | None = None, speed_m_s: float | None = None) -> None:
         """Fly a straight line to ``pos_m`` (world ENU), then turn in place to ``yaw_rad``.
@@ -764,12 +358,13 @@ class FlightRunner:
                 turn_s=3.0,
                 name="goto",
             )
-        await self._run(lambda: self._track(pat, "goto"))
+        await self.reactor.run(lambda: self.loop.track(pat, "goto"))
         self._remember(pat)
 
     def _vertical_rate(self, rate_m_s: float, name: str) -> float:
         """``rate_m_s`` capped at :data:`REFERENCE_HEADROOM` of the vertical speed limit (warned once)."""
-        cap = REFERENCE_HEADROOM * self.controller.config.max_vertical_m_s
+        limit = self.loop.controller.config.max_vertical_m_s
+        cap = REFERENCE_HEADROOM * limit
         if rate_m_s <= cap:
             return rate_m_s
         if name not in self._headroom_warned:
@@ -777,14 +372,14 @@ class FlightRunner:
             logger.warning(
                 "plan %s %.2f m/s leaves the controller no room to correct below max_vertical_m_s %.2f m/s; "
                 "flying %.2f m/s (raise [controller] max_vertical_m_s or lower %s)",
-                name, rate_m_s, self.controller.config.max_vertical_m_s, cap, name,
+                name, rate_m_s, limit, cap, name,
             )
         return cap
 
     def _transit_speed(self, start: Vec3, end: Vec3, speed_m_s: float) -> float:
         """The speed along a straight transit that keeps both its horizontal and vertical parts
         within :data:`REFERENCE_HEADROOM` of the controller's limits."""
-        c = self.controller.config
+        c = self.loop.controller.config
         dist = math.dist(start, end)
         horizontal = math.hypot(end[0] - start[0], end[1] - start[1]) / dist
         vertical = abs(end[2] - start[2]) / dist
@@ -805,27 +400,27 @@ class FlightRunner:
 
         Raises:
             SafetyAbort: a fault ended the pattern (the runner has already reacted: landed, etc.).
-            ValueError: the pattern leaves the geofence (with ``check_plan_in_fence``).
+            PlanError: the pattern leaves the geofence (with ``check_plan_in_fence``).
         """
         if laps is not None:
             pattern = with_laps(pattern, laps)
         if self.safety.check_plan_in_fence:
             bad = pattern_in_fence(pattern, self.safety)
             if bad is not None:
-                raise ValueError(
+                raise PlanError(
                     f"{pattern.name} leaves the geofence {self.safety.geofence.describe()} "
                     f"at t={bad.t_s:.1f} s, position ({bad.pos_m[0]:.2f}, {bad.pos_m[1]:.2f}, "
-                    f"{bad.pos_m[2]:.2f}); shrink the pattern"
+                    f"{bad.pos_m[2]:.2f}); shrink the pattern or move the fence"
                 )
         first = pattern.reference(0.0)
         await self.goto(first.pos_m, first.yaw_rad)
         self._last_yaw = first.yaw_rad
-        await self._run(lambda: self._track(pattern, "pattern"))
+        await self.reactor.run(lambda: self.loop.track(pattern, "pattern"))
         self._remember(pattern)
 
     async def land(self) -> None:
         """Descend under control, let the autopilot finish the touchdown, wait for disarm; blocks."""
-        await self._run(lambda: self._controlled_land(tolerate=Action.CONTINUE))
+        await self.reactor.run(lambda: self._controlled_land(Action.CONTINUE))
 
     async def _controlled_land(self, tolerate: Action) -> None:
         pos, yaw = self.current_pose()
@@ -835,7 +430,7 @@ class FlightRunner:
             pat = Land(pos, descent, floor, 0.3, self.settings.accel_m_s2, yaw)
             # the reference reaches below the floor to keep pressing down; the phase ends near
             # the floor (or on touchdown) and the autopilot's LAND finishes the touchdown
-            await self._track(
+            await self.loop.track(
                 pat,
                 "land",
                 tolerate=tolerate,
@@ -843,12 +438,12 @@ class FlightRunner:
                 end_when=lambda _t, p: p[2] < floor + 0.12 or self._landed(),
             )
         if self.link.telemetry.armed:
-            self.in_control = False
+            self.loop.in_control = False
             if not self._landed():
                 await self.link.land()
-            await self._wait_landed_or_disarm()
-        self.airborne = False
-        self.in_control = False
+            await self.reactor.wait_landed(disarm_on_ground=True)
+        self.loop.airborne = False
+        self.loop.in_control = False
         with contextlib.suppress(LinkError):
             await self.link.stop_setpoint_stream()
 
@@ -856,85 +451,16 @@ class FlightRunner:
         tel = self.link.telemetry
         return (not tel.armed) or tel.landed_state is LandedState.ON_GROUND
 
-    async def _wait_landed_or_disarm(self) -> None:
-        deadline = self.clock.monotonic_s() + self.settings.landed_timeout_s
-        disarm_sent = False
-        while self.link.telemetry.armed:
-            tel = self.link.telemetry
-            if tel.heartbeat_age_s > self.safety.heartbeat_period_s + self.safety.heartbeat_timeout_s:
-                raise _FaultExit(
-                    self._fault(
-                        FaultKind.HEARTBEAT_LOST,
-                        f"no autopilot heartbeat for {tel.heartbeat_age_s:.2f} s while landing",
-                        Action.STOP,
-                    )
-                )
-            if tel.landed_state is LandedState.ON_GROUND and not disarm_sent:
-                disarm_sent = True
-                with contextlib.suppress(CommandRejected, LinkTimeout):
-                    await self.link.disarm()
-            if self.clock.monotonic_s() > deadline:
-                raise LinkTimeout(
-                    f"the vehicle did not land and disarm within {self.settings.landed_timeout_s:.0f} s",
-                    "disarmed",
-                    self.settings.landed_timeout_s,
-                )
-            await self.clock.sleep(0.05)
-
     # ------------------------------------------------------------------ summary
 
     def finish(self) -> FlightSummary:
         """Fill in timing figures; returns the summary (call once at the end)."""
-        s = self.summary
-        s.duration_s = self.t_s
-        if self._cycle_s:
-            s.cycle_p50_ms, s.cycle_p99_ms = _p50_p99_ms(self._cycle_s)
-            s.cycle_cpu_p50_ms, s.cycle_cpu_p99_ms = _p50_p99_ms(self._cycle_cpu_s)
-            s.loop_rate_hz = self._rate_estimate()
-        return s
+        self.loop.fill_timing(self.summary)
+        return self.summary
 
     async def close(self) -> None:
-        if self._pose_task is not None:
-            self._pose_task.cancel()
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await self._pose_task
-            self._pose_task = None
-
-
-def _immediate_setter(link: VehicleLink) -> Callable[[VelocitySetpoint], None]:
-    """``link.set_velocity`` that puts the setpoint on the wire at once when the backend can
-    (``send_now``, pymavlink), so the setpoint follows the mocap sample without waiting for the
-    stream's next tick; the plain replace-the-streamed-setpoint call otherwise."""
-    try:
-        params = inspect.signature(link.set_velocity).parameters
-    except (TypeError, ValueError):  # pragma: no cover - builtins
-        return link.set_velocity
-    if "send_now" in params:
-        return functools.partial(link.set_velocity, send_now=True)  # type: ignore[call-arg]
-    return link.set_velocity
-
-
-class _Climb:
-    """Lift-off reference: stay over ``start`` and climb at ``climb_m_s`` open-ended."""
-
-    name = "climb"
-    laps = 1
-    lap_duration_s = math.inf
-    duration_s = math.inf
-
-    def __init__(self, start: Vec3, yaw: float, climb_m_s: float, runner: FlightRunner | None = None) -> None:
-        self.start, self.yaw, self.climb, self.runner = start, yaw, climb_m_s, runner
-
-    def reference(self, t_s: float) -> Reference:
-        # The height reference is the measured height (no vertical P term): the climb is pure
-        # feed-forward, so spin-up time does not build a position error that would overshoot later.
-        z = self.start[2]
-        if self.runner is not None:
-            with contextlib.suppress(MocapBodyMissing):
-                z = self.runner.current_pose()[0][2]
-        return Reference(
-            t_s, (self.start[0], self.start[1], z), (0.0, 0.0, self.climb), self.yaw, 0.0, 0, False
-        )
+        """Stop watching the mocap stream; idempotent."""
+        await self.loop.close()
 
 
 # ---------------------------------------------------------------------- one-call entry point
@@ -996,7 +522,6 @@ async def fly_plan(
             link,
             mocap,
             body=lab.mocap.body,
-            autopilot=lab.vehicle.autopilot,
             clock=clock,
             settings=plan.settings,
             controller=plan.controller,
@@ -1082,8 +607,3 @@ def _jsonable(obj: Any) -> dict[str, Any]:
         v = getattr(obj, f.name)
         out[f.name] = v.value if hasattr(v, "value") else v
     return out
-
-
-def _p50_p99_ms(values_s: list[float]) -> tuple[float, float]:
-    v = sorted(values_s)
-    return v[len(v) // 2] * 1e3, v[min(len(v) - 1, int(len(v) * 0.99))] * 1e3

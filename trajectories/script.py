@@ -136,7 +136,6 @@ class Flight:
                 link,
                 mocap,
                 body=self.lab.mocap.body,
-                autopilot=self.lab.vehicle.autopilot,
                 clock=self.clock,
                 settings=self._settings,
                 controller=self._controller,

@@ -28,6 +28,7 @@ __all__ = [
     "BatteryState",
     "ExternalPose",
     "ExternalPoseKind",
+    "FirmwareTraits",
     "FlightMode",
     "LandedState",
     "SetpointFrame",
@@ -35,6 +36,7 @@ __all__ = [
     "VehicleInfo",
     "VehicleLink",
     "VelocitySetpoint",
+    "firmware_traits",
     "offboard_mode_for",
 ]
 
@@ -64,6 +66,33 @@ class FlightMode(enum.Enum):
 def offboard_mode_for(autopilot: Autopilot) -> FlightMode:
     """The mode in which ``autopilot`` follows external setpoints."""
     return FlightMode.OFFBOARD if autopilot is Autopilot.PX4 else FlightMode.GUIDED
+
+
+@dataclass(frozen=True, slots=True)
+class FirmwareTraits:
+    """How a firmware must be driven; flight code asks these instead of naming the firmware.
+
+    Attributes:
+        control_mode: the mode in which it follows external setpoints (OFFBOARD, GUIDED).
+        setpoint_prestream_s: setpoints it wants to have received before it accepts that mode
+            and arming (PX4 refuses OFFBOARD without a recent setpoint stream).
+        liftoff_m: > 0 when the vehicle leaves the ground only on the autopilot's own take-off
+            command (ArduCopter: velocity setpoints on the ground do not spin it up); the height
+            to let it lift by before our controller climbs the rest. 0: our setpoints lift off.
+    """
+
+    control_mode: FlightMode
+    setpoint_prestream_s: float
+    liftoff_m: float
+
+
+def firmware_traits(autopilot: Autopilot) -> FirmwareTraits:
+    """The traits of ``autopilot``'s firmware (PX4 or ArduCopter)."""
+    if autopilot is Autopilot.PX4:
+        return FirmwareTraits(FlightMode.OFFBOARD, setpoint_prestream_s=1.2, liftoff_m=0.0)
+    # ArduCopter climbs at its own rate on that command (WPNAV_SPEED_UP, 2.5 m/s by default: above
+    # the supervisor's 2 m/s limit on a tall take-off), so it lifts the vehicle only this far.
+    return FirmwareTraits(FlightMode.GUIDED, setpoint_prestream_s=0.1, liftoff_m=0.3)
 
 
 class LandedState(enum.Enum):
@@ -188,6 +217,11 @@ class VehicleInfo:
     autopilot: Autopilot
     vehicle_type: int  # MAV_TYPE
     firmware_version: str = ""
+
+    @property
+    def traits(self) -> FirmwareTraits:
+        """How this firmware must be driven (:func:`firmware_traits`)."""
+        return firmware_traits(self.autopilot)
 
 
 @dataclass(frozen=True, slots=True)
@@ -329,8 +363,11 @@ class VehicleLink(Protocol, metaclass=_StaticProtocolMeta):
         """Stop streaming (sends one last zero-velocity setpoint); idempotent."""
         ...
 
-    def set_velocity(self, setpoint: VelocitySetpoint) -> None:
-        """Replace the streamed setpoint; returns immediately. The stream must be running."""
+    def set_velocity(self, setpoint: VelocitySetpoint, *, send_now: bool = False) -> None:
+        """Replace the streamed setpoint; returns immediately. The stream must be running.
+
+        ``send_now`` also puts it on the wire at once (where the backend can: pymavlink) instead of
+        at the stream's next tick; a backend that paces its own sends ignores it."""
         ...
 
     async def send_vision_pose(

@@ -389,8 +389,9 @@ class MavsdkLink(LinkLifetime):
             logger.warning("could not stop MAVSDK offboard cleanly: %s", exc)
         logger.info("setpoint stream stopped")
 
-    def set_velocity(self, setpoint: VelocitySetpoint) -> None:
-        """Replace the streamed setpoint; returns immediately.
+    def set_velocity(self, setpoint: VelocitySetpoint, *, send_now: bool = False) -> None:
+        """Replace the streamed setpoint; returns immediately (``send_now`` has no effect: MAVSDK
+        sends on its own schedule).
 
         Raises:
             SetpointError: beyond the hard safety limits of the MAVLink backends.
