@@ -51,6 +51,7 @@ __all__ = [
     "BusMode",
     "CAPABILITY_SECTIONS",
     "CameraConfig",
+    "FleetVehicleConfig",
     "LabConfig",
     "LinkBackend",
     "LinkConfig",
@@ -176,6 +177,7 @@ class VehicleConfig:
 @dataclass(frozen=True, slots=True)
 class LinkConfig:
     url: str = setting("udpout:127.0.0.1:14540", help="MAVLink connection string")
+    system_id: int = setting(0, min=0, max=255, help="the autopilot's MAVLink system id (0: the first heard)")
     backend: LinkBackend = setting(LinkBackend.PYMAVLINK, help="pymavlink or mavsdk")
     baud: int = setting(57600, min=1200, max=4_000_000, help="serial baud rate")
     source_system: int = setting(255, min=1, max=255, help="our MAVLink system id")
@@ -270,8 +272,45 @@ class CameraConfig:
 
 
 @dataclass(frozen=True, slots=True)
+class FleetVehicleConfig:
+    """One vehicle of a fleet: a ``[[vehicles]]`` entry; an empty field takes the lab's value."""
+
+    name: str = setting("", help="the vehicle's bus namespace, e.g. 'uav2' (required)")
+    body: str = setting("", help="its mocap rigid body (default: the name)")
+    url: str = setting("", help="its MAVLink connection string (default: link.url)")
+    system_id: int = setting(0, min=0, max=255, help="its autopilot's MAVLink system id (0: the first heard)")
+    autopilot: str = setting("", help="px4 or ardupilot (default: vehicle.autopilot)")
+    backend: str = setting("", help="pymavlink or mavsdk (default: link.backend)")
+    start_m: tuple[float, ...] = setting((), help="simulated lab only: where it stands at start, world x, y, z")
+    geofence_min_m: tuple[float, ...] = setting((), help="its own geofence corner (default: the plan's)")
+    geofence_max_m: tuple[float, ...] = setting((), help="its own geofence corner (default: the plan's)")
+
+    @staticmethod
+    def _check(obj: FleetVehicleConfig, path: str, key: str) -> None:
+        def bad(field_: str, problem: str, fix: str, value: object) -> ConfigError:
+            return ConfigError(path, f"{key}.{field_}", problem, fix, value)
+
+        if not obj.name:
+            raise bad("name", "missing vehicle name", "add name = 'uav2' (its bus namespace)", obj.name)
+        if obj.autopilot and obj.autopilot not in {a.value for a in Autopilot}:
+            raise bad("autopilot", f"unknown autopilot {obj.autopilot!r}", "use 'px4' or 'ardupilot'", obj.autopilot)
+        if obj.backend and obj.backend not in {b.value for b in LinkBackend}:
+            raise bad("backend", f"unknown backend {obj.backend!r}", "use 'pymavlink' or 'mavsdk'", obj.backend)
+        for name in ("start_m", "geofence_min_m", "geofence_max_m"):
+            v = getattr(obj, name)
+            if v and len(v) != 3:
+                raise bad(name, f"expected 3 numbers, got {len(v)}", "give [x, y, z] in metres", v)
+        if bool(obj.geofence_min_m) != bool(obj.geofence_max_m):
+            raise bad("geofence_max_m", "a geofence needs both corners", "give geofence_min_m and geofence_max_m", None)
+
+
+@dataclass(frozen=True, slots=True)
 class LabConfig:
-    """A whole lab set-up, as loaded from one TOML file."""
+    """A whole lab set-up, as loaded from one TOML file.
+
+    A fleet lab lists its vehicles as ``[[vehicles]]`` entries (:class:`FleetVehicleConfig`);
+    :meth:`fleet` gives one config per vehicle. Without entries the lab has one vehicle.
+    """
 
     vehicle: VehicleConfig = setting(default_factory=VehicleConfig)
     link: LinkConfig = setting(default_factory=LinkConfig)
@@ -281,6 +320,31 @@ class LabConfig:
     camera: CameraConfig = setting(default_factory=CameraConfig)
     source_path: str = setting("<defaults>", help="where this config came from (set by the loader)")
     capability_tables: dict[str, Any] = field(default_factory=dict, metadata={"init_only_loader": True})
+    vehicles: tuple[FleetVehicleConfig, ...] = field(default=(), metadata={"init_only_loader": True})
+
+    def fleet(self) -> tuple[LabConfig, ...]:
+        """One config per vehicle (this one when the lab lists no ``[[vehicles]]``): the lab's with
+        that vehicle's namespace, mocap body, link and autopilot."""
+        if not self.vehicles:
+            return (self,)
+        out = []
+        for v in self.vehicles:
+            link = dataclasses.replace(
+                self.link,
+                url=v.url or self.link.url,
+                system_id=v.system_id,
+                backend=LinkBackend(v.backend) if v.backend else self.link.backend,
+            )
+            vehicle = VehicleConfig(
+                namespace=v.name, autopilot=Autopilot(v.autopilot) if v.autopilot else self.vehicle.autopilot
+            )
+            mocap = dataclasses.replace(self.mocap, body=v.body or v.name)
+            out.append(dataclasses.replace(self, vehicle=vehicle, link=link, mocap=mocap, vehicles=()))
+        return tuple(out)
+
+    def vehicle_entry(self, name: str) -> FleetVehicleConfig | None:
+        """The ``[[vehicles]]`` entry named ``name`` (None in a one-vehicle lab or when absent)."""
+        return next((v for v in self.vehicles if v.name == name), None)
 
     def section(self, name: str, cls: type[T]) -> T:
         """Validate a capability table (e.g. ``[report]``) into ``cls``; defaults when absent.
@@ -444,5 +508,32 @@ def load_config(path: str | Path | None = None, table: Mapping[str, Any] | None 
     for name, table in extra.items():
         if not isinstance(table, Mapping):
             raise ConfigError(src, name, f"expected a table, got {table!r}", f"write it as [{name}]", table)
+    vehicles = _load_vehicles(data.pop("vehicles", []), src)
     cfg = load_section(LabConfig, data, path=src)
-    return dataclasses.replace(cfg, source_path=src, capability_tables=extra)
+    return dataclasses.replace(cfg, source_path=src, capability_tables=extra, vehicles=vehicles)
+
+
+def _load_vehicles(entries: Any, path: str) -> tuple[FleetVehicleConfig, ...]:
+    """Validate the ``[[vehicles]]`` array: each entry, then unique names, bodies and links."""
+    if not isinstance(entries, list) or not all(isinstance(e, Mapping) for e in entries):
+        raise ConfigError(
+            path, "vehicles", "expected an array of tables", "write each vehicle as [[vehicles]]", entries
+        )
+    out = tuple(
+        load_section(FleetVehicleConfig, e, path=path, prefix=f"vehicles[{i}]") for i, e in enumerate(entries)
+    )
+    seen: dict[object, int] = {}
+    for i, v in enumerate(out):
+        for what, ident in (("name", v.name), ("body", v.body or v.name), ("link", (v.url, v.system_id))):
+            if v.url == "" and what == "link":
+                continue  # the lab's link.url: told apart by system_id below if needed
+            first = seen.setdefault((what, ident), i)
+            if first != i:
+                raise ConfigError(
+                    path,
+                    f"vehicles[{i}].{'url' if what == 'link' else what}",
+                    f"vehicles[{first}] and vehicles[{i}] have the same {what} {ident!r}",
+                    "give every vehicle its own name, mocap body and MAVLink connection (url or system_id)",
+                    ident,
+                )
+    return out

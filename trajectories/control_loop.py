@@ -34,7 +34,16 @@ from flightkit.mocap.base import MocapPose, MocapSource
 from trajectories.base import Pattern, Reference
 from trajectories.controller import VelocityController
 from trajectories.flightlog import FlightLog, FlightSummary, PhaseStats
-from trajectories.supervisor import Action, Decision, Fault, FaultKind, SafetyConfig, SupervisorInput, supervise
+from trajectories.supervisor import (
+    ACTION_OF,
+    Action,
+    Decision,
+    Fault,
+    FaultKind,
+    SafetyConfig,
+    SupervisorInput,
+    supervise,
+)
 
 __all__ = ["ControlLoop", "FaultExit", "LiftOff", "LogRow", "Status"]
 
@@ -196,6 +205,7 @@ class ControlLoop:
         self.interrupted = asyncio.Event()
         self.in_control = False  # we command the vehicle (armed, in the offboard mode)
         self.airborne = False  # it may be off the ground (from take-off until touchdown)
+        self.external_faults: tuple[Fault, ...] = ()  # raised by an outer (fleet) supervisor; latched
         self.cycle_s: list[float] = []  # wall time per control cycle
         self.cycle_cpu_s: list[float] = []  # this thread's CPU time per cycle (no waits, no steal)
         self._t0 = clock.monotonic_s()
@@ -299,6 +309,12 @@ class ControlLoop:
                 logger.warning("fault at t=%.2f s: %s: %s", f.time_s, f.kind.value, f.message)
         self._active = kinds
 
+    def raise_fault(self, kind: FaultKind, message: str) -> None:
+        """Latch a fault detected outside this vehicle (the fleet supervisor's); from the event
+        loop. The next tick reacts to it like to its own supervisor's faults."""
+        if all(f.kind is not kind for f in self.external_faults):
+            self.external_faults += (Fault(self.t_s, kind, message, ACTION_OF[kind]),)
+
     def fault(self, kind: FaultKind, message: str, action: Action) -> Decision:
         """A decision for a fault the loop's owner detected (not the supervisor)."""
         return Decision(action, (Fault(self.t_s, kind, message, action),))
@@ -352,6 +368,7 @@ class ControlLoop:
                 ahead.pos_m,
                 self._speed_m_s,
                 self.interrupted.is_set(),
+                self.external_faults,
             ),
         )
         if decision.faults or self._active:

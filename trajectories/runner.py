@@ -134,6 +134,8 @@ class FlightRunner:
         self._headroom_warned: set[str] = set()
         self._last_target: Vec3 | None = None
         self._last_yaw: float | None = None
+        self.pattern_started_s = math.nan
+        """Clock time of the last pattern's first cycle (a fleet's start skew is measured on it)."""
 
     # ------------------------------------------------------------------ state
 
@@ -415,8 +417,24 @@ class FlightRunner:
         first = pattern.reference(0.0)
         await self.goto(first.pos_m, first.yaw_rad)
         self._last_yaw = first.yaw_rad
+        self.pattern_started_s = self.clock.monotonic_s()
         await self.reactor.run(lambda: self.loop.track(pattern, "pattern"))
         self._remember(pattern)
+
+    async def hold_until(self, done: Callable[[], bool], timeout_s: float = 120.0, phase: str = "sync") -> None:
+        """Hold the current target (or position) until ``done()`` is true; blocks.
+
+        Raises:
+            SafetyAbort: a fault ended the hold. LinkTimeout: still not done after ``timeout_s``.
+        """
+        if done():
+            return
+        p, y = self._here(None, None)
+        await self.reactor.run(
+            lambda: self.loop.track(
+                Hold(p, y, 1e6), phase, end_when=lambda _t, _p: done(), timeout_s=timeout_s
+            )
+        )
 
     async def land(self) -> None:
         """Descend under control, let the autopilot finish the touchdown, wait for disarm; blocks."""

@@ -14,6 +14,10 @@ fault                       condition                              action
 ``geofence_position``       measured position outside the box      ABORT (hold, land)
 ``geofence_reference``      reference outside the box              ABORT (hold, land)
 ``overspeed``               measured speed above the limit         ABORT (hold, land)
+``separation``              (fleet) two vehicles too close, now    ABORT (hold, land)
+                            or predicted a look-ahead ahead
+``fleet``                   (fleet) another vehicle's fault, with  ABORT (hold, land)
+                            ``on_vehicle_fault = "land"``
 ``mocap_stale``             no valid mocap pose for 0.2 s          HOLD (zero velocity)
 ==========================  =====================================  ====================
 
@@ -35,6 +39,7 @@ from flightkit.link.base import FlightMode, Telemetry
 from trajectories.base import Vec3
 
 __all__ = [
+    "ACTION_OF",
     "Action",
     "Decision",
     "Fault",
@@ -72,6 +77,8 @@ class FaultKind(enum.Enum):
     OVERSPEED = "overspeed"
     BATTERY_LOW = "battery_low"
     INTERRUPTED = "interrupted"
+    SEPARATION = "separation"
+    FLEET = "fleet"
 
 
 ACTION_OF: dict[FaultKind, Action] = {
@@ -79,6 +86,8 @@ ACTION_OF: dict[FaultKind, Action] = {
     FaultKind.GEOFENCE_POSITION: Action.ABORT,
     FaultKind.GEOFENCE_REFERENCE: Action.ABORT,
     FaultKind.OVERSPEED: Action.ABORT,
+    FaultKind.SEPARATION: Action.ABORT,
+    FaultKind.FLEET: Action.ABORT,
     FaultKind.BATTERY_LOW: Action.LAND,
     FaultKind.INTERRUPTED: Action.LAND,
     FaultKind.MOCAP_LOST: Action.LAND_AUTOPILOT,
@@ -198,6 +207,7 @@ class SupervisorInput:
             gives the reference ``fence_lookahead_s`` ahead, so a breach is seen before it is flown.
         speed_m_s: measured speed (from mocap), NaN when unknown.
         interrupted: Ctrl-C / SIGTERM received.
+        external: faults raised outside this vehicle (the fleet supervisor's), passed on as active.
     """
 
     now_s: float
@@ -208,6 +218,7 @@ class SupervisorInput:
     ref_pos_m: Vec3 | None = None
     speed_m_s: float = math.nan
     interrupted: bool = False
+    external: tuple[Fault, ...] = ()
 
 
 @dataclass(frozen=True, slots=True)
@@ -291,6 +302,7 @@ def supervise(cfg: SafetyConfig, inp: SupervisorInput) -> Decision:
             f"measured speed {inp.speed_m_s:.2f} m/s is above {cfg.max_speed_m_s:g} m/s; "
             "holding, then landing",
         )
+    faults.extend(inp.external)
     if not faults:
         return _OK
     return Decision(max(f.action for f in faults), tuple(faults))

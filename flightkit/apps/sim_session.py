@@ -21,6 +21,7 @@ import logging
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from flightkit.clock import ONE_PROCESS_WALL_STEP_S, Clock, SimClock
 from flightkit.config import Autopilot, LabConfig, LinkBackend
@@ -31,7 +32,11 @@ from trajectories.flightlog import FlightSummary
 from trajectories.plan import Plan
 from trajectories.runner import Status, fly_plan
 
-__all__ = ["SimSession", "fly_plan_in_sim", "sim_lab_config", "sim_session"]
+if TYPE_CHECKING:
+    from flightkit.sim.fleet import SimFleet
+    from trajectories.fleet import Fleet
+
+__all__ = ["SimSession", "fly_plan_in_sim", "sim_fleet_session", "sim_lab_config", "sim_session"]
 
 logger = logging.getLogger(__name__)
 
@@ -175,3 +180,38 @@ async def fly_plan_in_sim(
             handle_signals=handle_signals,
         )
     raise AssertionError("unreachable")  # pragma: no cover
+
+
+@contextlib.asynccontextmanager
+async def sim_fleet_session(
+    lab_cfg: LabConfig | None = None,
+    *,
+    vehicles: int | None = None,
+    speed: float | None = None,
+    clock: Clock | None = None,
+    **fleet_options: Any,
+) -> AsyncIterator[tuple[SimFleet, Fleet]]:
+    """Start a simulated fleet and a :class:`~trajectories.fleet.Fleet` flying it; all closed on exit.
+
+    Args:
+        lab_cfg: the lab config (its ``[[vehicles]]``, or ``vehicles`` of them in a row).
+        vehicles: fly this many vehicles ``uav1`` .. ``uavN`` (default: the config's).
+        speed: override ``sim.speed``. clock: the clock (default the fleet's ``SimClock``).
+        fleet_options: passed to :class:`Fleet` (``arm``, ``settings``, ``fleet_safety`` ...).
+
+    Yields:
+        (the simulated fleet, for fault injection; the connected, checked and started fleet).
+    """
+    from flightkit.sim.fleet import SimFleet, fleet_lab_config
+    from trajectories.fleet import Fleet
+
+    cfg = sim_lab_config(lab_cfg, speed=speed)
+    if vehicles is not None:
+        cfg = fleet_lab_config(cfg, vehicles)
+    sim = SimFleet(cfg, clock=clock, ready_after_s=0.0).start()
+    try:
+        mocap = SimMocapSource(system=sim.mocap, T_world_mocap=cfg.mocap.T_world_mocap.to_transform())
+        async with mocap, Fleet(sim.client_config(), clock=sim.clock, mocap=mocap, **fleet_options) as fleet:
+            yield sim, fleet
+    finally:
+        sim.stop()

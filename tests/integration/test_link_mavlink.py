@@ -302,6 +302,20 @@ async def test_port_in_use(scheme: str) -> None:
 
 
 @asynctest
+async def test_the_vehicle_is_picked_by_system_id() -> None:
+    clock = lab_clock()
+    with sim_autopilot(Autopilot.PX4, clock, ready_after_s=0.0, system_id=3) as sim:
+        # the configured system id answers: connected to it
+        async with connected(sim, Autopilot.PX4, clock, system_id=3) as link:
+            assert link.info.system_id == 3
+        # another vehicle answers on this link: the error names the id that did
+        wrong = MavlinkLink(link_config(sim.client_url, system_id=2, heartbeat_timeout_s=1.0), Autopilot.PX4, clock)
+        with pytest.raises(LinkTimeout, match="no HEARTBEAT from system 2 .* system id 3 answered; set link.system_id"):
+            await wrong.connect()
+        await wrong.close()
+
+
+@asynctest
 async def test_signing() -> None:
     clock = lab_clock()
     with sim_autopilot(Autopilot.ARDUPILOT, clock, ready_after_s=0.0, signing_key=KEY) as sim:

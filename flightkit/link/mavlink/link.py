@@ -122,6 +122,9 @@ class MavlinkLink(LinkLifetime):
         signing = SigningSettings(key, link_id) if key is not None else None
         self._max_pose_rate_hz = max_pose_rate_hz
 
+        if target_system is None and cfg.system_id:
+            target_system = cfg.system_id
+        self._target_system = target_system
         self._state = VehicleState(self._clock, cfg.source_system, target_system, self._pin_autopilot)
         self._conn = MavlinkConnection(
             self.endpoint,
@@ -236,11 +239,19 @@ class MavlinkLink(LinkLifetime):
         s = self._state
         with s.lock:
             rx, rejected, others = s.rx, s.rx_rejected, s.rx_other_components
+            other_systems = sorted(s.other_systems)
         where = self.endpoint.url
         if self.endpoint.listens and self.endpoint.port == 0 and self._conn.opened:
             where += f" (local port {self.local_port})"
         msg = f"no HEARTBEAT on {where} after {timeout_s:.1f} s; is the autopilot/simulator running and link.url right?"
-        if rejected:
+        if other_systems:
+            wanted = self._target_system
+            msg = (
+                f"no HEARTBEAT from system {wanted} on {where} after {timeout_s:.1f} s, but autopilot(s) with "
+                f"system id {', '.join(map(str, other_systems))} answered; set link.system_id to the vehicle's "
+                "id (its SYSID_THISMAV / MAV_SYS_ID) or check which vehicle is on this link"
+            )
+        elif rejected:
             msg += f" ({rejected} packets were dropped for a missing or wrong signature: check link.signing_key_hex)"
         elif rx:
             msg += f" ({rx} packets arrived but none was an autopilot heartbeat from component 1; {others} from others)"

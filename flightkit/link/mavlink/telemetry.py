@@ -99,6 +99,7 @@ class VehicleState:
         self.rx = 0
         self.rx_rejected = 0
         self.rx_other_components = 0
+        self.other_systems: set[int] = set()  # autopilots heard that are not the target
 
     def telemetry(self) -> Telemetry:
         """A snapshot of the latest state; returns immediately."""
@@ -191,6 +192,7 @@ class VehicleState:
         if self.target is None:
             if self._target_system is not None and src_sys != self._target_system:
                 self.rx_other_components += 1
+                self.other_systems.add(src_sys)
                 return
             self.target = (src_sys, src_comp)
             self.info = VehicleInfo(src_sys, src_comp, autopilot, int(msg.type))

@@ -163,6 +163,12 @@ class MavsdkLink(LinkLifetime):
                     what="HEARTBEAT",
                     timeout_s=timeout_s,
                 ) from None
+            if self._cfg.system_id and sysid != self._cfg.system_id:
+                raise LinkError(
+                    f"the autopilot on {self._url} is system {sysid}, but link.system_id says "
+                    f"{self._cfg.system_id}; MAVSDK drives the first system it finds, so give each "
+                    "vehicle its own connection (or use backend = 'pymavlink', which picks by system id)"
+                )
             seen = autopilot_from_heartbeat(int(hb.get("autopilot", 0)))
             if seen is not None and seen is not self._autopilot:
                 raise LinkError(

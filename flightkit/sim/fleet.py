@@ -1,0 +1,127 @@
+"""A simulated fleet: several vehicles, each with its own autopilot on its own UDP port, under
+one mocap system that tracks every body, all on one clock.
+
+The vehicles come from the lab config's ``[[vehicles]]`` entries (:meth:`LabConfig.fleet`), or
+from :func:`fleet_lab_config` for ``flightkit sim --vehicles N``. Each stands where its entry's
+``start_m`` says (default: in a row along world y, :data:`SPAWN_SPACING_M` apart). Faults are
+injected per vehicle as in a one-vehicle lab: ``fleet.labs[name].kill_link(...)``, a pilot's
+mode change through that lab's autopilot, or ``fleet.mocap.hide_body(body)`` for a mocap
+dropout of one body.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+
+from flightkit.clock import ONE_PROCESS_WALL_STEP_S, Clock, SimClock
+from flightkit.config import FleetVehicleConfig, LabConfig
+from flightkit.errors import ConfigError
+from flightkit.lifetime import Running
+from flightkit.sim.autopilot import AutopilotOptions
+from flightkit.sim.lab import SimLab
+from flightkit.sim.mocap import SimMocapSystem
+
+__all__ = ["SPAWN_SPACING_M", "SimFleet", "fleet_lab_config"]
+
+SPAWN_SPACING_M = 1.0
+"""Default distance between simulated vehicles' start points (along world y)."""
+
+
+def fleet_lab_config(base: LabConfig, n: int, *, spacing_m: float = SPAWN_SPACING_M) -> LabConfig:
+    """``base`` with ``n`` vehicles ``uav1`` .. ``uavN`` (bodies of the same names), spawned in a
+    row along world y ``spacing_m`` apart and centred on the origin.
+
+    Raises:
+        ConfigError: ``n`` is not 1-10.
+    """
+    if not 1 <= n <= 10:
+        raise ConfigError(base.source_path, "vehicles", f"{n} vehicles", "fly 1 to 10 vehicles", n)
+    y0 = -spacing_m * (n - 1) / 2.0
+    entries = tuple(
+        FleetVehicleConfig(name=f"uav{i + 1}", start_m=(0.0, y0 + spacing_m * i, 0.0)) for i in range(n)
+    )
+    return dataclasses.replace(base, vehicles=entries)
+
+
+class SimFleet(Running):
+    """Simulated vehicles of a fleet lab config, and one mocap system tracking them all.
+
+    Args:
+        config: the lab config with ``[[vehicles]]`` (a one-vehicle config gives one vehicle).
+        clock: the shared clock (default ``SimClock(config.sim.speed)``).
+        ready_after_s: the autopilots' estimator convergence time (0 for tests; None: default).
+
+    Attributes:
+        labs: vehicle name -> its :class:`SimLab`.
+        mocap: the mocap system (every body, in the frame ``mocap.T_world_mocap`` places).
+    """
+
+    def __init__(self, config: LabConfig, *, clock: Clock | None = None, ready_after_s: float | None = None) -> None:
+        self.config = config
+        self.clock: Clock = clock or SimClock(config.sim.speed, max_wall_step_s=ONE_PROCESS_WALL_STEP_S)
+        self.labs: dict[str, SimLab] = {}
+        self._bodies: dict[str, str] = {}
+        for i, vcfg in enumerate(config.fleet()):
+            name = vcfg.vehicle.namespace
+            entry = config.vehicle_entry(name)
+            start = entry.start_m if entry is not None and entry.start_m else (0.0, SPAWN_SPACING_M * i, 0.0)
+            self.labs[name] = SimLab(
+                vcfg,
+                url="udpin:127.0.0.1:0",
+                clock=self.clock,
+                options=AutopilotOptions(system_id=vcfg.link.system_id or 1),
+                start_pos_enu_m=start,
+                ready_after_s=ready_after_s,
+            )
+            self._bodies[name] = vcfg.mocap.body
+        self.mocap = SimMocapSystem(
+            self.clock,
+            {self._bodies[n]: lab.T_world_body for n, lab in self.labs.items()},
+            T_world_mocap=config.mocap.T_world_mocap.to_transform(),
+            rate_hz=config.sim.mocap_rate_hz,
+            noise_m=config.sim.mocap_noise_m,
+        )
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The vehicles' names, in config order."""
+        return tuple(self.labs)
+
+    def body_of(self, name: str) -> str:
+        """The mocap body of vehicle ``name``."""
+        return self._bodies[name]
+
+    def client_configs(self) -> Mapping[str, LabConfig]:
+        """Per vehicle, the lab config a client uses to reach it (its link URL resolved); call after
+        :meth:`start` (the autopilots' ports are picked then)."""
+        out = {}
+        for vcfg in self.config.fleet():
+            lab = self.labs[vcfg.vehicle.namespace]
+            out[vcfg.vehicle.namespace] = dataclasses.replace(
+                vcfg, link=dataclasses.replace(vcfg.link, url=lab.client_url)
+            )
+        return out
+
+    def client_config(self) -> LabConfig:
+        """The whole fleet's lab config with every vehicle's link URL resolved (after :meth:`start`)."""
+        entries = tuple(
+            dataclasses.replace(e, url=self.labs[e.name].client_url) for e in self.config.vehicles
+        )
+        if not entries:  # a one-vehicle lab
+            only = next(iter(self.labs.values()))
+            return dataclasses.replace(self.config, link=dataclasses.replace(self.config.link, url=only.client_url))
+        return dataclasses.replace(self.config, vehicles=entries)
+
+    def start(self) -> SimFleet:
+        """Start every autopilot and the mocap system; returns immediately."""
+        for lab in self.labs.values():
+            lab.start()
+        self.mocap.start()
+        return self
+
+    def stop(self) -> None:
+        """Stop the mocap system and every autopilot; idempotent."""
+        self.mocap.stop()
+        for lab in self.labs.values():
+            lab.stop()

@@ -1,0 +1,110 @@
+"""Fleets in the simulated lab: three simulated autopilots, each on its own UDP port, under one
+simulated mocap system that tracks every body, flown by one :class:`~trajectories.fleet.Fleet`
+over real MAVLink, on the simulator's accelerated clock."""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import math
+from pathlib import Path
+
+import pytest
+
+from flightkit.apps.sim_session import sim_fleet_session
+from flightkit.config import load_config
+from flightkit.errors import PlanError, SafetyAbort
+from trajectories.circle import Circle
+from trajectories.plan import PlanSettings
+from trajectories.separation import FleetSafety
+from trajectories.supervisor import FaultKind
+
+EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
+SPEED = 3.0  # three vehicles' loops, autopilots and one mocap system in one process on 2 cores
+SETTINGS = PlanSettings(rate_hz=50.0, takeoff_height_m=1.2)
+
+pytestmark = [pytest.mark.sitl, pytest.mark.timeout(300)]
+
+
+def on_one_circle(period_s: float = 20.0) -> dict[str, Circle]:
+    """Three vehicles on one 1 m circle at 1.2 m, 120 degrees apart; each starts at the point
+    nearest its spawn (uav1 at y = -1, uav2 at the origin, uav3 at y = +1), so the transits
+    to the start points diverge."""
+    base = Circle(radius_m=1.0, height_m=1.2, period_s=period_s, laps=1)
+    angles_deg = {"uav1": -60.0, "uav2": 180.0, "uav3": 60.0}
+    return {n: dataclasses.replace(base, start_angle_rad=math.radians(a)) for n, a in angles_deg.items()}
+
+
+def lab() -> object:
+    return load_config(EXAMPLES / "lab_sim.toml")
+
+
+def test_three_vehicles_fly_one_circle_together(tmp_path: Path) -> None:
+    async def go() -> None:
+        async with sim_fleet_session(
+            lab(), vehicles=3, speed=SPEED, arm=True, settings=SETTINGS, log_dir=tmp_path
+        ) as (sim, fleet):
+            assert fleet.names == ("uav1", "uav2", "uav3")
+            # each vehicle is its own autopilot, on its own port
+            assert len({lab_.port for lab_ in sim.labs.values()}) == 3
+            await fleet.takeoff(1.2)
+            for n in fleet.names:
+                assert fleet.runner(n).current_pose()[0][2] > 1.0
+            # two vehicles on one point of the circle: refused before anything moves
+            crowded = on_one_circle()
+            crowded["uav2"] = dataclasses.replace(crowded["uav1"], start_angle_rad=math.radians(-60.0 + 12.0))
+            with pytest.raises(PlanError, match="uav1 and uav2 come 0.2. m close"):
+                await fleet.fly(crowded)
+            skew_s = await fleet.fly(on_one_circle())
+            await fleet.land()
+        assert 0.0 <= skew_s < 0.1, skew_s  # one common start, measured
+        for n, summary in fleet.summaries().items():
+            assert summary.laps_completed == 1, (n, summary.format_table())
+            assert summary.phase("pattern").rms_error_m < 0.05, (n, summary.format_table())
+            assert not [f for f in summary.faults if f.kind is not FaultKind.MOCAP_STALE], summary.format_table()
+        for n, lab_ in sim.labs.items():
+            assert not lab_.autopilot.armed, n
+        # 1 m apart in the spawn row and while taking off, 1.73 m on the circle (120 degrees' chord)
+        assert 0.9 < fleet.report.min_separation_m < 1.1, fleet.report
+        assert not fleet.report.faults
+
+    asyncio.run(go())
+    assert sorted(p.name for p in tmp_path.glob("*.csv")) == ["fleet-uav1.csv", "fleet-uav2.csv", "fleet-uav3.csv"]
+
+
+def test_one_vehicle_losing_mocap_lands_the_fleet() -> None:
+    async def go() -> None:
+        async with sim_fleet_session(lab(), vehicles=3, speed=SPEED, arm=True, settings=SETTINGS) as (sim, fleet):
+            await fleet.takeoff(1.2)
+            sim.mocap.hide_body("uav2")  # uav2's markers occluded for good
+            with pytest.raises(SafetyAbort) as info:
+                await fleet.hold(10.0)
+            assert info.value.reason == FaultKind.MOCAP_LOST.value
+        kinds = {n: {f.kind for f in s.faults} for n, s in fleet.summaries().items()}
+        assert FaultKind.MOCAP_LOST in kinds["uav2"]
+        assert FaultKind.FLEET in kinds["uav1"] and FaultKind.FLEET in kinds["uav3"]
+        assert [v for _, v, _ in fleet.report.faults][:1] == ["uav2"]
+        for n, lab_ in sim.labs.items():
+            assert not lab_.autopilot.armed, n
+            assert lab_.truth().pos_enu_m[2] < 0.05, n
+
+    asyncio.run(go())
+
+
+def test_lost_separation_holds_and_lands_every_vehicle() -> None:
+    async def go() -> None:
+        safety = FleetSafety(min_separation_m=0.6, lookahead_s=1.0)
+        async with sim_fleet_session(
+            lab(), vehicles=2, speed=SPEED, arm=True, settings=SETTINGS, fleet_safety=safety
+        ) as (sim, fleet):
+            await fleet.takeoff(1.0)
+            # fly them at each other: the prediction sees it before they are 0.6 m apart
+            with pytest.raises(SafetyAbort) as info:
+                await fleet.goto({"uav1": (0.0, 0.2, 1.0), "uav2": (0.0, -0.2, 1.0)})
+            assert info.value.reason == FaultKind.SEPARATION.value
+        assert fleet.report.faults and "below 0.6 m" in fleet.report.faults[0][2]
+        assert fleet.report.min_separation_m > 0.3, fleet.report  # they stopped short of each other
+        for n, lab_ in sim.labs.items():
+            assert not lab_.autopilot.armed, n
+
+    asyncio.run(go())
