@@ -66,6 +66,10 @@ class Lawnmower(PiecewisePattern):
             raise ValueError(f"lawnmower: speed ({speed_m_s}) and accel ({accel_m_s2}) must be positive")
         if laps > 1 and not return_to_start:
             raise ValueError("lawnmower: several laps need return_to_start = true")
+        if yaw_mode is YawMode.TRAVEL and not turn_s > 0.0:
+            raise ValueError(
+                "lawnmower: yaw = 'travel' turns in place at every corner; give turn_s > 0 or yaw = 'fixed'"
+            )
         pts2 = lawnmower_points(origin_m, size_m, spacing_m, lane_dir_rad)
         if return_to_start and math.dist(pts2[-1], pts2[0]) > 1e-9:
             pts2.append(pts2[0])

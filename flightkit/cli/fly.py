@@ -15,7 +15,7 @@ __all__ = ["register", "run"]
 
 def register(subparsers: Any) -> None:
     p = subparsers.add_parser("fly", help="fly a TOML flight plan (circle, rectangle, lawnmower, ...)")
-    p.add_argument("plan", help="plan TOML file, e.g. examples/circle.toml")
+    p.add_argument("plan", help="plan TOML file, e.g. examples/circle.toml, or a fleet plan (fleet_circle.toml)")
     p.add_argument("--config", default=None, help="lab config TOML (default: built-in defaults)")
     p.add_argument(
         "--connect",
@@ -45,7 +45,9 @@ def register(subparsers: Any) -> None:
         help="mocap source (overrides mocap.source)",
     )
     p.add_argument("--backend", choices=["pymavlink", "mavsdk"], default=None, help="MAVLink library")
-    p.add_argument("--log", default=None, help="flight log file (default: flightlogs/<plan>-<time>.csv)")
+    p.add_argument(
+        "--log", default=None, help="flight log file (default: flightlogs/<plan>-<time>.csv; a fleet: a folder)"
+    )
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("--plot", action="store_true", help="write PNG plots of the flight log at the end")
     p.set_defaults(func=run)
@@ -55,8 +57,11 @@ def run(args: argparse.Namespace) -> int:
     import asyncio
 
     from flightkit.apps.flight import Status, fly, lab_with_overrides, load_plan, plot_log
-    from flightkit.config import load_config
+    from flightkit.config import load_config, load_toml
+    from trajectories.fleet_plan import is_fleet_plan
 
+    if is_fleet_plan(load_toml(args.plan)):
+        return _run_fleet(args)
     plan = load_plan(args.plan)
     sim = args.sim or args.connect == "sim"
     lab = lab_with_overrides(
@@ -89,3 +94,52 @@ def run(args: argparse.Namespace) -> int:
         for p in plot_log(summary.log_path):
             print(f"plot: {p}")
     return 0 if summary.outcome == "completed" else 1
+
+
+def _run_fleet(args: argparse.Namespace) -> int:
+    """A fleet plan: one status line per vehicle, a summary table per vehicle and the fleet's figures."""
+    import asyncio
+    import time
+
+    from flightkit.apps.fleet import fly_fleet, load_fleet_plan
+    from flightkit.apps.flight import Status, lab_with_overrides
+    from flightkit.config import load_config
+
+    fplan = load_fleet_plan(args.plan)
+    sim = args.sim or args.connect == "sim"
+    lab = lab_with_overrides(
+        load_config(args.config) if args.config else load_config(),
+        backend=args.backend,
+        mocap_source=args.mocap,
+        autopilot=args.autopilot,
+    )
+    shown: dict[str, float] = {}
+
+    def on_status(name: str, s: Status) -> None:
+        now = time.monotonic()
+        if now - shown.get(name, 0.0) >= 1.0:
+            shown[name] = now
+            print(f"{name:>6}  {s.line()}", file=sys.stderr, flush=True)
+
+    log_dir = args.log or (fplan.plan.settings.log_dir or "flightlogs")
+    result = asyncio.run(
+        fly_fleet(fplan, lab, sim=sim, speed=args.speed, arm=args.arm, log_dir=log_dir, on_status=on_status)
+    )
+    if args.json:
+        import json
+
+        print(
+            json.dumps(
+                {
+                    "plan": result.name,
+                    "outcome": result.outcome,
+                    "min_separation_m": result.min_separation_m,
+                    "start_skew_s": result.start_skew_s,
+                    "fleet_faults": [{"time_s": t, "who": w, "message": m} for t, w, m in result.faults],
+                    "vehicles": {n: s.to_dict() for n, s in result.summaries.items()},
+                }
+            )
+        )
+    else:
+        print(result.format_table())
+    return 0 if result.outcome == "completed" else 1

@@ -108,3 +108,19 @@ def test_lost_separation_holds_and_lands_every_vehicle() -> None:
             assert not lab_.autopilot.armed, n
 
     asyncio.run(go())
+
+
+def test_fly_a_fleet_plan_from_the_command_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from flightkit.cli.main import main
+
+    rc = main(["fly", str(EXAMPLES / "fleet_formation.toml"), "--sim", "--speed", str(SPEED), "--log", str(tmp_path)])
+    out = capsys.readouterr()
+    assert rc == 0, out.out + out.err
+    assert "fleet 'fleet_formation': completed" in out.out
+    for name in ("leader", "left", "right"):
+        assert f"flight 'fleet_formation/{name}': completed" in out.out
+        assert (tmp_path / f"fleet_formation-{name}.csv").stat().st_size > 10_000
+    # one live status line per vehicle
+    assert {line.split()[0] for line in out.err.splitlines() if " t=" in line} == {"leader", "left", "right"}
+    sep = float(out.out.split("min separation ")[1].split(" m")[0])
+    assert 0.8 < sep < 1.0  # the followers keep 0.9 m to the leader's sides
