@@ -51,7 +51,7 @@ from flightkit.datasets.tum import to_tum_depth, tum_associate, write_tum_camera
 from flightkit.errors import CaptureError, DatasetError
 from flightkit.frames import MOCAP_FRAME_ID, WORLD_FRAME_ID, Transform, WorldFrames, quat_wxyz_to_xyzw
 
-__all__ = ["ExportReport", "export_recording"]
+__all__ = ["ExportReport", "camera_vehicles", "export_recording", "export_vehicles"]
 
 logger = logging.getLogger(__name__)
 
@@ -114,9 +114,23 @@ def _stamp_text(stamp_ns: int) -> str:
 
 
 def _plan(
-    rec: RecordingReader, fmt: str, camera: str | None, mocap_body: str | None, frames: WorldFrames
+    rec: RecordingReader,
+    fmt: str,
+    camera: str | None,
+    mocap_body: str | None,
+    frames: WorldFrames,
+    vehicle: str | None,
 ) -> _Plan:
-    cams = rec.cameras()
+    if vehicle is None:
+        with_cameras = camera_vehicles(rec)
+        if len(with_cameras) > 1:
+            raise CaptureError(
+                f"{rec.path} holds the cameras of {', '.join(with_cameras)}; export one vehicle (--vehicle) "
+                "or all of them, one folder each (export_vehicles, the export command's default)"
+            )
+    elif vehicle not in rec.namespaces():
+        raise CaptureError(f"{rec.path} has no vehicle {vehicle!r}; it has {', '.join(rec.namespaces()) or 'none'}")
+    cams = rec.cameras(vehicle)
     images = {name: t["image"] for name, t in cams.items() if "image" in t}
     prefs = ("left", "color", "gray", "image", "infra1") if fmt == "euroc" else ("color", "left", "gray", "image")
     if camera is None:
@@ -128,7 +142,7 @@ def _plan(
             f"{rec.path} has no camera image stream{'' if camera is None else f' named {camera!r}'}; "
             f"it has {sorted(images) or 'none'} (topics …/camera/<name>/image)"
         )
-    mocap = rec.mocap_topics()
+    mocap = rec.mocap_topics(vehicle)
     calib = rec.calibration()
     if mocap_body is None and mocap:
         mocap_body = calib.mocap_body if calib.mocap_body in mocap else sorted(mocap)[0]
@@ -180,6 +194,7 @@ def export_recording(
     T_body_camera: Transform | None = None,  # noqa: N803
     T_world_mocap: Transform | None = None,  # noqa: N803
     frame: str = WORLD_FRAME_ID,
+    vehicle: str | None = None,
     allow_overwrite: bool = False,
     progress: ProgressFn | None = None,
 ) -> ExportReport:
@@ -187,6 +202,8 @@ def export_recording(
 
     Args:
         frame: ``world`` (the default) or ``mocap``: the frame the ground truth is written in.
+        vehicle: the vehicle (bus namespace) whose camera and mocap body to export; needed when
+            the recording holds several vehicles' cameras (see :func:`export_vehicles`).
         T_body_camera, T_world_mocap: override the recording's extrinsics and mocap frame.
 
     Blocks until done; ``progress(done, total)`` is called as images are written.
@@ -206,7 +223,7 @@ def export_recording(
     try:
         rec = RecordingReader(src)
         frames = rec.world_frames(T_world_mocap)
-        plan = _plan(rec, fmt, camera, mocap_body, frames)
+        plan = _plan(rec, fmt, camera, mocap_body, frames, vehicle)
     except DatasetError as exc:
         raise CaptureError(str(exc)) from exc
     T_bc = T_body_camera or plan.T_body_camera  # noqa: N806
@@ -236,6 +253,32 @@ def export_recording(
         _export_euroc(src, out, plan, images, body_traj, T_bc, max_diff_ns, report, total, progress)
     logger.info("%s", report.summary())
     return report
+
+
+def camera_vehicles(rec: RecordingReader) -> list[str]:
+    """The vehicles (namespaces) of a recording that have a camera image stream, sorted."""
+    return [ns for ns in rec.namespaces() if any("image" in t for t in rec.cameras(ns).values())]
+
+
+def export_vehicles(
+    src: str | Path, out_dir: str | Path, fmt: str, *, allow_overwrite: bool = False, **options: Any
+) -> dict[str, ExportReport]:
+    """Export every vehicle of a (fleet) recording with a camera, one folder each: ``OUT/<vehicle>``
+    (a one-vehicle recording goes to ``OUT`` itself). ``options`` as :func:`export_recording`.
+
+    Raises:
+        CaptureError: as :func:`export_recording`; also when no vehicle has a camera.
+    """
+    src, out = Path(src), Path(out_dir)
+    try:
+        vehicles = camera_vehicles(RecordingReader(src))
+    except DatasetError as exc:
+        raise CaptureError(str(exc)) from exc
+    if len(vehicles) <= 1:
+        only = vehicles[0] if vehicles else None
+        return {only or "": export_recording(src, out, fmt, vehicle=only, allow_overwrite=allow_overwrite, **options)}
+    _prepare_out(out, allow_overwrite)
+    return {v: export_recording(src, out / v, fmt, vehicle=v, **options) for v in vehicles}
 
 
 def _images(rec: RecordingReader, topics: list[str]) -> Iterator[tuple[str, DecodedImage]]:

@@ -312,7 +312,8 @@ def start_recording(
         path: the ``.mcap`` file.
         session: a Zenoh session to use; None opens one from ``bus_cfg`` (or ``lab_cfg.bus``,
             or the embedded default) and closes it on stop.
-        topics: key expressions; default ``[capture] topics`` or ``<ns>/**``.
+        topics: key expressions; default ``[capture] topics`` or ``<ns>/**`` of every vehicle of
+            the lab (its ``[[vehicles]]``).
         lab_cfg: the lab config (namespace, metadata, ``[capture]`` defaults).
         compression: ``zstd``, ``lz4`` or ``none`` (default from ``[capture]``).
         options: passed to :class:`BusRecorder` (split, chunk and queue settings).
@@ -323,8 +324,8 @@ def start_recording(
         CaptureError, BusError: see :class:`BusRecorder` and :func:`flightkit.bus.session.open_session`.
     """
     cap = lab_cfg.section("capture", CaptureConfig) if lab_cfg is not None else CaptureConfig()
-    ns = lab_cfg.vehicle.namespace if lab_cfg is not None else "uav1"
-    topics = list(topics or cap.topics or [Keys(ns).everything()])
+    namespaces = [c.vehicle.namespace for c in lab_cfg.fleet()] if lab_cfg is not None else ["uav1"]
+    topics = list(topics or cap.topics or [Keys(ns).everything() for ns in namespaces])
     meta = recording_metadata(lab_cfg)
     meta.update(options.pop("metadata", None) or {})
     options.setdefault("chunk_size", int(cap.chunk_size_mb * (1 << 20)))

@@ -15,7 +15,7 @@ from pathlib import Path
 import zenoh
 
 from capture.config import CaptureConfig
-from capture.export import ExportReport, export_recording
+from capture.export import ExportReport, export_recording, export_vehicles
 from capture.info import RecordingInfo, StreamStats, recording_info
 from capture.session import BusRecorder, start_recording
 from capture.sources._runner import SourceThread
@@ -34,6 +34,7 @@ __all__ = [
     "StreamStats",
     "bridge_mocap",
     "export_recording",
+    "export_vehicles",
     "open_publisher",
     "parse_source",
     "recording_info",

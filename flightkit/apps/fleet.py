@@ -13,10 +13,10 @@ from collections.abc import Callable
 from pathlib import Path
 
 from flightkit.config import FleetVehicleConfig, LabConfig
-from trajectories.fleet_plan import FleetPlan, FleetResult, fly_fleet_plan, load_fleet_plan
+from trajectories.fleet_plan import FleetPlan, FleetResult, fly_fleet_plan, is_fleet_plan, load_fleet_plan
 from trajectories.runner import Status
 
-__all__ = ["FleetPlan", "FleetResult", "fly_fleet", "load_fleet_plan", "sim_fleet_config"]
+__all__ = ["FleetPlan", "FleetResult", "fly_fleet", "is_fleet_plan", "load_fleet_plan", "sim_fleet_config"]
 
 
 def sim_fleet_config(fplan: FleetPlan, lab: LabConfig) -> LabConfig:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from flightkit.bus.streams import CameraStreamSelection
 from flightkit.config import Autopilot, LabConfig
@@ -17,7 +18,10 @@ from flightkit.sim.autopilot import AutopilotOptions
 from flightkit.sim.lab import SimEvent, SimLab
 from flightkit.sim.publish import SimLabPublishers
 
-__all__ = ["SimLabServed", "camera_streams", "serve_sim_lab"]
+if TYPE_CHECKING:
+    from flightkit.sim.fleet import SimFleet
+
+__all__ = ["SimFleetServed", "SimLabServed", "camera_streams", "serve_sim_fleet", "serve_sim_lab"]
 
 
 def camera_streams(lab_cfg: LabConfig) -> CameraStreamSelection:
@@ -96,3 +100,78 @@ def serve_sim_lab(
         finally:
             if pubs is not None:
                 pubs.stop()
+
+
+@dataclass(frozen=True, slots=True)
+class SimFleetServed:
+    """What :func:`serve_sim_fleet` started, handed to ``on_ready``.
+
+    Attributes:
+        fleet: the running simulated fleet (``fleet.labs[name].client_url`` reaches a vehicle).
+        keys: the bus keys its mocap and cameras publish on.
+        camera_error: why the cameras could not start ("" when they run or were not asked for).
+    """
+
+    fleet: SimFleet
+    keys: tuple[str, ...]
+    camera_error: str = ""
+
+
+def serve_sim_fleet(
+    lab_cfg: LabConfig,
+    stop: threading.Event,
+    *,
+    base_port: int = 14540,
+    host: str = "127.0.0.1",
+    ready_after_s: float | None = None,
+    mocap: bool = True,
+    camera: bool = True,
+    on_event: Callable[[str, SimEvent], None] | None = None,
+    on_ready: Callable[[SimFleetServed], None] | None = None,
+) -> None:
+    """Run a simulated fleet (the lab's ``[[vehicles]]``) until ``stop`` is set; blocks.
+
+    Vehicle ``i`` (in config order) listens on ``udpin:host:base_port + i``; one mocap system
+    publishes every body under its vehicle's namespace; with ``camera`` each vehicle's camera
+    publishes under its namespace too.
+
+    Raises:
+        EndpointError: a port is in use. BusError: the bus cannot be opened.
+    """
+    from flightkit.bus.session import open_session
+    from flightkit.errors import FlightkitError
+    from flightkit.sim.fleet import SimFleet
+    from flightkit.sim.publish import SimFleetPublishers
+
+    n = len(lab_cfg.fleet())
+    urls = [f"udpin:{host}:{base_port + i}" for i in range(n)]
+    fleet = SimFleet(lab_cfg, ready_after_s=ready_after_s, urls=urls)
+    if on_event is not None:
+        for name, lab in fleet.labs.items():
+            lab.events.append(_tagged(on_event, name))
+    with fleet:
+        pubs: SimFleetPublishers | None = None
+        camera_error = ""
+        if mocap or camera:
+            session = open_session(lab_cfg.bus)
+            use_camera = camera and lab_cfg.camera.enabled
+            try:
+                pubs = SimFleetPublishers(
+                    fleet, session, camera=use_camera, streams=camera_streams(lab_cfg), owns_session=True
+                )
+            except FlightkitError as exc:  # the fleet still runs without cameras
+                camera_error = str(exc)
+                pubs = SimFleetPublishers(fleet, session, camera=False, owns_session=True)
+            pubs.start()
+        try:
+            if on_ready is not None:
+                on_ready(SimFleetServed(fleet, tuple(pubs.keys) if pubs is not None else (), camera_error))
+            while not stop.wait(0.5):
+                pass
+        finally:
+            if pubs is not None:
+                pubs.stop()
+
+
+def _tagged(on_event: Callable[[str, SimEvent], None], name: str) -> Callable[[SimEvent], None]:
+    return lambda event: on_event(name, event)

@@ -29,6 +29,10 @@ def register(sub: Any) -> None:
         help="frame of the ground truth: world (the recording's T_world_mocap applied; default) or mocap "
         "(the mocap system's own frame, as TUM and EuRoC publish)",
     )
+    p.add_argument(
+        "--vehicle", help="export this vehicle (bus namespace) only; default: every vehicle with a camera, "
+        "one folder each (OUTPUT/<vehicle>) when the recording holds several",
+    )
     p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
     p.set_defaults(func=run)
 
@@ -37,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-    from flightkit.apps.capture import export_recording
+    from flightkit.apps.capture import export_recording, export_vehicles
     from flightkit.config import load_config
 
     T_body_camera = T_world_mocap = None  # noqa: N806
@@ -55,12 +59,19 @@ def run(args: argparse.Namespace) -> int:
         def progress(done: int, total: int) -> None:
             bar.update(task, completed=done, total=total or None)
 
-        report = export_recording(
-            args.recording, args.output, args.format, camera=args.camera, mocap_body=args.body,
-            max_diff_s=args.max_diff, T_body_camera=T_body_camera, T_world_mocap=T_world_mocap,
-            frame=args.frame, allow_overwrite=args.force, progress=progress,
-        )
-    print(report.summary())
-    for note in report.notes:
-        print(f"note: {note}")
+        options: dict[str, Any] = {
+            "camera": args.camera, "mocap_body": args.body, "max_diff_s": args.max_diff,
+            "T_body_camera": T_body_camera, "T_world_mocap": T_world_mocap, "frame": args.frame,
+            "allow_overwrite": args.force, "progress": progress,
+        }
+        if args.vehicle:
+            reports = {args.vehicle: export_recording(args.recording, args.output, args.format, vehicle=args.vehicle,
+                                                      **options)}
+        else:
+            force = options.pop("allow_overwrite")
+            reports = export_vehicles(args.recording, args.output, args.format, allow_overwrite=force, **options)
+    for vehicle, report in reports.items():
+        print((f"{vehicle}: " if len(reports) > 1 else "") + report.summary())
+        for note in report.notes:
+            print(f"note: {note}")
     return 0

@@ -49,6 +49,10 @@ def register(subparsers: Any) -> None:
     p.add_argument(
         "--signing-key", metavar="HEX", help="MAVLink 2 signing key, 64 hex digits (default: config)"
     )
+    p.add_argument(
+        "--vehicles", type=int, metavar="N",
+        help="a fleet of N vehicles uav1..uavN, on ports 14540.. (or the config's [[vehicles]])",
+    )
     p.add_argument("--no-mocap", action="store_true", help="do not publish simulated mocap on the bus")
     p.add_argument(
         "--no-camera", action="store_true", help="do not publish the simulated camera streams on the bus"
@@ -90,6 +94,9 @@ def run(args: argparse.Namespace) -> int:
         signing_key=key,
     )
 
+    if args.vehicles is not None or config.vehicles:
+        return _run_fleet(args, config)
+
     def show(event: SimEvent) -> None:
         if event.kind in ("param",):
             return
@@ -124,6 +131,54 @@ def run(args: argparse.Namespace) -> int:
             camera=not args.no_camera,
             on_event=show,
             on_ready=ready,
+        )
+    except KeyboardInterrupt:
+        print("flightkit sim: stopping")
+    return 0
+
+
+def _run_fleet(args: argparse.Namespace, config: Any) -> int:
+    import threading
+
+    from flightkit.apps.sim_lab import SimFleetServed, serve_sim_fleet
+    from flightkit.errors import ConfigError
+    from flightkit.sim.fleet import fleet_lab_config
+    from flightkit.sim.lab import SimEvent
+
+    if args.connect or args.signing_key or args.heading_offset_deg:
+        raise ConfigError(
+            "<command line>", "--vehicles", "a fleet takes neither --connect, --signing-key nor --heading-offset-deg",
+            "run one vehicle with those, or a fleet without them",
+        )
+    if args.vehicles is not None:
+        config = fleet_lab_config(config, args.vehicles)
+    base_port = 14540
+    host = "127.0.0.1"
+    if args.listen:
+        host, _, port = args.listen.split(":", 1)[1].rpartition(":")
+        base_port = int(port)
+
+    def show(name: str, event: SimEvent) -> None:
+        if event.kind != "param":
+            print(f"[t={event.stamp_s:8.2f} s] {name}: {event.kind}: {event.detail}", flush=True)
+
+    def ready(served: SimFleetServed) -> None:
+        fleet = served.fleet
+        print(f"flightkit sim: a fleet of {len(fleet.labs)}, {fleet.clock!r}")
+        for name, lab in fleet.labs.items():
+            print(f"  {name}: {lab.personality.vehicle_name}, mocap body {fleet.body_of(name)!r}, "
+                  f"connect with {lab.client_url}")
+        if served.keys:
+            print(f"  bus: {', '.join(served.keys)}")
+        if served.camera_error:
+            print(f"  cameras: not published ({served.camera_error})")
+        print("  Ctrl-C to stop")
+
+    stop = threading.Event()
+    try:
+        serve_sim_fleet(
+            config, stop, base_port=base_port, host=host or "127.0.0.1", ready_after_s=args.ready_after,
+            mocap=not args.no_mocap, camera=not args.no_camera, on_event=show, on_ready=ready,
         )
     except KeyboardInterrupt:
         print("flightkit sim: stopping")

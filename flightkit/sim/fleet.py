@@ -12,8 +12,9 @@ dropout of one body.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
+from flightkit.bus.keys import Keys
 from flightkit.clock import ONE_PROCESS_WALL_STEP_S, Clock, SimClock
 from flightkit.config import FleetVehicleConfig, LabConfig
 from flightkit.errors import ConfigError
@@ -51,24 +52,36 @@ class SimFleet(Running):
         config: the lab config with ``[[vehicles]]`` (a one-vehicle config gives one vehicle).
         clock: the shared clock (default ``SimClock(config.sim.speed)``).
         ready_after_s: the autopilots' estimator convergence time (0 for tests; None: default).
+        urls: each vehicle's autopilot endpoint, in config order (default: a free loopback port each).
 
     Attributes:
         labs: vehicle name -> its :class:`SimLab`.
         mocap: the mocap system (every body, in the frame ``mocap.T_world_mocap`` places).
     """
 
-    def __init__(self, config: LabConfig, *, clock: Clock | None = None, ready_after_s: float | None = None) -> None:
+    def __init__(
+        self,
+        config: LabConfig,
+        *,
+        clock: Clock | None = None,
+        ready_after_s: float | None = None,
+        urls: Sequence[str] | None = None,
+    ) -> None:
         self.config = config
         self.clock: Clock = clock or SimClock(config.sim.speed, max_wall_step_s=ONE_PROCESS_WALL_STEP_S)
         self.labs: dict[str, SimLab] = {}
         self._bodies: dict[str, str] = {}
-        for i, vcfg in enumerate(config.fleet()):
+        configs = config.fleet()
+        if urls is not None and len(urls) != len(configs):
+            raise ConfigError(config.source_path, "vehicles", f"{len(urls)} URLs for {len(configs)} vehicles",
+                              "give one autopilot URL per vehicle", list(urls))
+        for i, vcfg in enumerate(configs):
             name = vcfg.vehicle.namespace
             entry = config.vehicle_entry(name)
             start = entry.start_m if entry is not None and entry.start_m else (0.0, SPAWN_SPACING_M * i, 0.0)
             self.labs[name] = SimLab(
                 vcfg,
-                url="udpin:127.0.0.1:0",
+                url=urls[i] if urls is not None else "udpin:127.0.0.1:0",
                 clock=self.clock,
                 options=AutopilotOptions(system_id=vcfg.link.system_id or 1),
                 start_pos_enu_m=start,
@@ -87,6 +100,10 @@ class SimFleet(Running):
     def names(self) -> tuple[str, ...]:
         """The vehicles' names, in config order."""
         return tuple(self.labs)
+
+    def keys_by_body(self) -> dict[str, Keys]:
+        """Mocap body -> the bus namespace of its vehicle (for :class:`SimMocapPublisher`)."""
+        return {body: Keys(name) for name, body in self._bodies.items()}
 
     def body_of(self, name: str) -> str:
         """The mocap body of vehicle ``name``."""

@@ -350,15 +350,17 @@ class SimMocapPublisher(Running):
 
     Args:
         session: an open Zenoh session.
-        keys: the namespace the poses go under (``<ns>/mocap/<body>/pose``).
+        keys: the namespace the poses go under (``<ns>/mocap/<body>/pose``), or body -> namespace
+            (a fleet: each body under its own vehicle's namespace).
         system: the simulated mocap system (started and stopped with this publisher).
 
     Use ``with``/``async with`` or :meth:`start` / :meth:`stop`.
     """
 
-    def __init__(self, session: zenoh.Session, keys: Keys, system: SimMocapSystem) -> None:
+    def __init__(self, session: zenoh.Session, keys: Keys | Mapping[str, Keys], system: SimMocapSystem) -> None:
         self.system = system
-        self._pubs = {name: PosePublisher(session, keys, name) for name in system.body_names}
+        keys_of = keys if isinstance(keys, Mapping) else dict.fromkeys(system.body_names, keys)
+        self._pubs = {name: PosePublisher(session, keys_of[name], name) for name in system.body_names}
         self.published = 0
 
     @property

@@ -25,14 +25,59 @@ from flightkit.sim.camera_publisher import SimCameraPublisher
 from flightkit.sim.mocap import SimMocapPublisher, SimMocapSystem
 
 if TYPE_CHECKING:
+    from flightkit.sim.fleet import SimFleet
     from flightkit.sim.lab import SimLab
 
-__all__ = ["SimLabPublishers"]
+__all__ = ["SimFleetPublishers", "SimLabPublishers"]
 
 logger = logging.getLogger(__name__)
 
 
-class SimLabPublishers(Running):
+class _Publishers(Running):
+    """A mocap system's publisher and camera publishers on one session; started and stopped together."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        mocap_system: SimMocapSystem,
+        mocap: SimMocapPublisher,
+        cameras: list[SimCameraPublisher],
+        owns_session: bool,
+    ) -> None:
+        self.session = session
+        self.mocap_system = mocap_system
+        self.mocap = mocap
+        self.cameras = cameras
+        self._owns_session = owns_session
+
+    @property
+    def camera(self) -> SimCameraPublisher | None:
+        """The (first) vehicle's camera publisher, None without a camera."""
+        return self.cameras[0] if self.cameras else None
+
+    @property
+    def keys(self) -> list[str]:
+        """Every key published on."""
+        return self.mocap.keys + [k for c in self.cameras for k in c.keys]
+
+    def start(self) -> Self:
+        """Start publishing; returns immediately."""
+        self.mocap.start()
+        for c in self.cameras:
+            c.start()
+        return self
+
+    def stop(self) -> None:
+        """Stop publishing (and close the session when owned); idempotent."""
+        for c in self.cameras:
+            c.stop()
+        self.mocap.stop()
+        if self._owns_session:
+            self._owns_session = False
+            self.session.close()
+
+
+class SimLabPublishers(_Publishers):
     """Mocap (and camera) of a simulated lab, published on a bus session.
 
     Args:
@@ -60,41 +105,41 @@ class SimLabPublishers(Running):
         owns_session: bool = False,
     ) -> None:
         keys = Keys(lab_cfg.vehicle.namespace)
-        self.session = session
-        self._owns_session = owns_session
-        self.mocap_system = SimMocapSystem(
+        system = SimMocapSystem(
             lab.clock,
             {lab_cfg.mocap.body: lab.T_world_body},
             T_world_mocap=true_T_world_mocap or lab_cfg.mocap.T_world_mocap.to_transform(),
             rate_hz=lab_cfg.sim.mocap_rate_hz,
             noise_m=lab_cfg.sim.mocap_noise_m,
         )
-        self.mocap = SimMocapPublisher(session, keys, self.mocap_system)
         use_camera = lab_cfg.camera.enabled if camera is None else camera
-        self.camera = (
-            SimCameraPublisher(session, keys, lab.T_world_body, lab_cfg.camera, lab.clock, streams=streams)
+        cameras = (
+            [SimCameraPublisher(session, keys, lab.T_world_body, lab_cfg.camera, lab.clock, streams=streams)]
             if use_camera
-            else None
+            else []
         )
+        super().__init__(session, system, SimMocapPublisher(session, keys, system), cameras, owns_session)
 
-    @property
-    def keys(self) -> list[str]:
-        """Every key published on."""
-        return self.mocap.keys + (self.camera.keys if self.camera is not None else [])
 
-    def start(self) -> Self:
-        """Start publishing; returns immediately."""
-        self.mocap.start()
-        if self.camera is not None:
-            self.camera.start()
-        return self
+class SimFleetPublishers(_Publishers):
+    """Every vehicle of a simulated fleet on a bus session: its mocap system (each body under its
+    vehicle's namespace) and, with ``camera``, one camera per vehicle. Arguments as
+    :class:`SimLabPublishers`."""
 
-    def stop(self) -> None:
-        """Stop publishing (and close the session when owned); idempotent."""
-        if self.camera is not None:
-            self.camera.stop()
-        self.mocap.stop()
-        if self._owns_session:
-            self._owns_session = False
-            self.session.close()
-
+    def __init__(
+        self,
+        fleet: SimFleet,
+        session: zenoh.Session,
+        *,
+        camera: bool | None = None,
+        streams: CameraStreamSelection | None = None,
+        owns_session: bool = False,
+    ) -> None:
+        use_camera = fleet.config.camera.enabled if camera is None else camera
+        cameras = [
+            SimCameraPublisher(session, Keys(name), lab.T_world_body, lab.config.camera, lab.clock, streams=streams)
+            for name, lab in fleet.labs.items()
+            if use_camera
+        ]
+        mocap = SimMocapPublisher(session, fleet.keys_by_body(), fleet.mocap)
+        super().__init__(session, fleet.mocap, mocap, cameras, owns_session)

@@ -9,6 +9,7 @@ import dataclasses
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from flightkit.apps.sim_session import sim_fleet_session
@@ -124,3 +125,66 @@ def test_fly_a_fleet_plan_from_the_command_line(tmp_path: Path, capsys: pytest.C
     assert {line.split()[0] for line in out.err.splitlines() if " t=" in line} == {"leader", "left", "right"}
     sep = float(out.out.split("min separation ")[1].split(" m")[0])
     assert 0.8 < sep < 1.0  # the followers keep 0.9 m to the leader's sides
+
+
+def test_a_fleet_recording_is_grouped_and_exported_per_vehicle(tmp_path: Path) -> None:
+    """Two simulated vehicles' mocap and cameras over a real Zenoh session into one MCAP file:
+    ``capture info`` groups it by vehicle and the export writes one TUM folder per vehicle, each
+    with its own vehicle's ground truth."""
+    from capture.config import CaptureConfig
+    from capture.export import export_vehicles
+    from capture.info import recording_info
+    from capture.session import start_recording
+    from flightkit.bus.session import open_session
+    from flightkit.clock import LockstepClock
+    from flightkit.config import BusConfig
+    from flightkit.sim.fleet import SimFleet, fleet_lab_config
+    from flightkit.sim.publish import SimFleetPublishers
+    from tests.conftest import free_tcp_port, wait
+
+    port = free_tcp_port()
+    pub_s = open_session(BusConfig(listen=(f"tcp/127.0.0.1:{port}",)))
+    rec_s = open_session(BusConfig(connect=(f"tcp/127.0.0.1:{port}",)))
+    base = load_config(EXAMPLES / "lab_sim.toml")
+    cfg = fleet_lab_config(
+        dataclasses.replace(base, camera=dataclasses.replace(base.camera, width_px=160, height_px=120)), 2
+    )
+    clock = LockstepClock()
+    fleet = SimFleet(cfg, clock=clock)  # the autopilots stay off: the vehicles stand at their spawn points
+    pubs = SimFleetPublishers(fleet, pub_s, camera=True, streams=cfg.section("capture", CaptureConfig).streams())
+    out = tmp_path / "fleet.mcap"
+    rec = start_recording(out, session=rec_s, lab_cfg=cfg)  # default topics: every vehicle's namespace
+    try:
+        assert set(rec.topics) == {"uav1/**", "uav2/**"}
+        wait(lambda: pubs.mocap.has_subscribers and all(c.has_subscribers for c in pubs.cameras), 10, "subscribers")
+        pubs.start()
+        rate_hz = cfg.sim.mocap_rate_hz
+        ticks = int(0.5 * rate_hz)
+        for k in range(ticks):
+            wait(lambda k=k: pubs.mocap.published >= k + 1, 10, f"mocap tick {k}")
+            for cam in pubs.cameras:
+                cam.wait_frames(int(k / rate_hz * cfg.camera.rate_hz) + 1, 10)
+            clock.advance(1.0 / rate_hz)
+        pubs.stop()
+        rec.wait_for(
+            lambda st: all(
+                (s := st.get(f"{v}/camera/color/image")) is not None and s.count >= 10 for v in ("uav1", "uav2")
+            ),
+            15,
+        )
+        report = rec.stop()
+    finally:
+        rec.stop()
+        rec_s.close()
+        pub_s.close()
+    assert report.error == ""
+    info = recording_info(out)
+    groups = info.by_vehicle()
+    assert set(groups) == {"uav1", "uav2"}
+    assert {s.topic.split("/")[-2] for s in groups["uav2"] if "/camera/" in s.topic} >= {"color", "depth"}
+    reports = export_vehicles(out, tmp_path / "tum", "tum")
+    assert set(reports) == {"uav1", "uav2"}
+    for v, y in (("uav1", -0.5), ("uav2", 0.5)):  # spawned 1 m apart along world y
+        gt = np.loadtxt(tmp_path / "tum" / v / "groundtruth.txt")
+        assert len(gt) > 20 and reports[v].associated_groundtruth > 5
+        assert abs(float(np.median(gt[:, 2])) - y) < 0.1, (v, gt[:3])
