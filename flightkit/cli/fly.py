@@ -56,9 +56,9 @@ def register(subparsers: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     import asyncio
 
+    from flightkit.apps.fleet import is_fleet_plan
     from flightkit.apps.flight import Status, fly, lab_with_overrides, load_plan, plot_log
     from flightkit.config import load_config, load_toml
-    from flightkit.apps.fleet import is_fleet_plan
 
     if is_fleet_plan(load_toml(args.plan)):
         return _run_fleet(args)
