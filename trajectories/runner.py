@@ -32,7 +32,7 @@ import logging
 import math
 import signal
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, cast
@@ -294,13 +294,13 @@ class FlightRunner:
         self.interrupted.set()
 
     @contextlib.contextmanager
-    def signals_land(self) -> Any:
+    def signals_land(self) -> Iterator[None]:
         """While inside, SIGINT and SIGTERM make the flight land instead of killing the process.
 
         Only in the main thread (elsewhere this does nothing).
         """
         loop = asyncio.get_running_loop()
-        installed: list[tuple[int, Any]] = []
+        installed: list[tuple[signal.Signals, Any]] = []
         try:
             for sig in (signal.SIGINT, signal.SIGTERM):
                 try:
@@ -648,13 +648,16 @@ class FlightRunner:
                         self.settings.arm_timeout_s,
                     )
                 pose, _ = self._pose(self.clock.monotonic_s())
-                pos = None if pose is None else tuple(float(x) for x in pose.T_world_body.translation)
+                pos: Vec3 | None = None
+                if pose is not None:
+                    t = pose.T_world_body.translation
+                    pos = (float(t[0]), float(t[1]), float(t[2]))
                 self._status(
                     "wait_pilot",
                     0,
                     0,
                     pos,
-                    "CONTINUE",  # type: ignore[arg-type]
+                    "CONTINUE",
                     f"arm and switch to {mode.value}: {left:4.0f} s left",
                 )
                 await self._keep_streaming(0.2)
@@ -940,7 +943,7 @@ async def fly_plan(
         if link is None:
             from flightkit.link import open_link
 
-            link = await stack.enter_async_context(open_link(lab.link, lab.vehicle.autopilot, clock))  # type: ignore[type-var]
+            link = await stack.enter_async_context(open_link(lab.link, lab.vehicle.autopilot, clock))
         if mocap is None:
             mocap = await stack.enter_async_context(open_lab_mocap(lab, clock))
         assert link is not None and mocap is not None

@@ -177,6 +177,12 @@ class RealSensePublisher(SourceThread):
         self.depth_scale_m = 0.001
         self._depth_mm: npt.NDArray[np.uint16] | None = None
 
+    @property
+    def keys(self) -> list[str]:
+        """The image and camera-info keys of the colour (and, when enabled, depth) streams."""
+        names = ("color", "depth") if self.depth_enabled else ("color",)
+        return [k for n in names for k in (self._keys.camera_image(n), self._keys.camera_info(n))]
+
     def _start_pipeline(self) -> tuple[Any, Any]:
         rs = self._rs
         pipe = rs.pipeline()
