@@ -31,6 +31,7 @@ import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 from flightkit import __version__
 from flightkit.datasets.mcap_recovery import finalize_in_place
@@ -369,12 +370,13 @@ class Recorder:
             self._flush_chunk()
 
     def _run(self) -> None:
+        s: StreamSample | _MetadataItem | Literal[False] | None  # False: nothing arrived in time
         try:
             while True:
                 try:
                     s = self._q.get(timeout=self._chunk_max_age_s / 2)
                 except queue.Empty:
-                    s = False  # type: ignore[assignment]
+                    s = False
                 if s is None:
                     break
                 if isinstance(s, _MetadataItem):

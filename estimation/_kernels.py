@@ -27,6 +27,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 from llvmlite import ir
 from numba import njit, types
 from numba.core import cgutils
@@ -58,6 +59,8 @@ def _fma_typer(typingctx: Any, a: Any, b: Any, c: Any) -> Any:
     return sig, codegen
 
 
+F64 = npt.NDArray[np.float64]
+
 _fma: Any = intrinsic(_fma_typer)
 """``_fma(a, b, c)`` in compiled code: the fused multiply-add of OpenBLAS's FMA kernels."""
 
@@ -79,7 +82,7 @@ def _xform(X: Any, T: Any, i: int, j: int) -> float:
 
 
 @njit(cache=True)
-def transform(X: Any, T: Any) -> Any:
+def transform(X: Any, T: Any) -> F64:
     """``X @ T[:3, :3].T + T[:3, 3]`` for (N, 3) points and a (4, 4) (or (3, 4)) transform."""
     n = X.shape[0]
     out = np.empty((n, 3))
@@ -140,7 +143,7 @@ def pose_gauss_newton(
     iterations: int,
     stop: float,
     dof: int,
-) -> Any:
+) -> F64:
     """The whole Gauss-Newton loop of ``estimation.motion.refine_pose``.
 
     Per step and point ``i`` of ``X`` (reference frame) seen at ``uv[i]``: the u and v
@@ -158,7 +161,7 @@ def pose_gauss_newton(
     call instead of ~10 per step: 0.20 -> 0.036 ms for 210 points and 4 steps.
     """
     n = X.shape[0]
-    T = T0.copy()
+    T: F64 = T0.copy()
     H = np.empty((dof, dof))
     g = np.empty(dof)
     dR = np.empty((3, 3))
@@ -265,7 +268,7 @@ def pose_gauss_newton(
 
 
 @njit(cache=True)
-def reproj_err2(X: Any, T: Any, uv: Any, fx: float, fy: float, cx: float, cy: float, z_min: float) -> Any:
+def reproj_err2(X: Any, T: Any, uv: Any, fx: float, fy: float, cx: float, cy: float, z_min: float) -> F64:
     """Squared reprojection error (px^2) of (N, 3) reference points under ``T`` against (N, 2)
     pixels; ``inf`` where the point is at or behind ``z = z_min``."""
     n = X.shape[0]
@@ -280,7 +283,9 @@ def reproj_err2(X: Any, T: Any, uv: Any, fx: float, fy: float, cx: float, cy: fl
 
 
 @njit(cache=True)
-def project(X: Any, T: Any, fx: float, fy: float, cx: float, cy: float, width: float, height: float) -> Any:
+def project(
+    X: Any, T: Any, fx: float, fy: float, cx: float, cy: float, width: float, height: float
+) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.bool_]]:
     """Pinhole projection of (N, 3) points under ``T``: (N, 2) float32 pixels and (N,) bool
     "in front (z > 0.05 m) and within 20 px of the image"."""
     n = X.shape[0]
@@ -299,7 +304,7 @@ def project(X: Any, T: Any, fx: float, fy: float, cx: float, cy: float, width: f
 
 
 @njit(cache=True)
-def depth_at(depth: Any, u: Any, v: Any, min_m: float, max_m: float) -> Any:
+def depth_at(depth: Any, u: Any, v: Any, min_m: float, max_m: float) -> F64:
     """Depth (float64 metres) of a float32 depth image at the pixels nearest (rounded half to
     even) to ``(u, v)``; NaN outside a 1-pixel border, where the pixel has no depth (<= 0),
     outside ``[min_m, max_m]``, or at a depth edge (the spread of the 4 neighbours, which
@@ -330,7 +335,7 @@ def depth_at(depth: Any, u: Any, v: Any, min_m: float, max_m: float) -> Any:
 
 
 @njit(cache=True)
-def sampson_distance(R: Any, t: Any, x_ref: Any, x_cur: Any, f_px: float, signed: bool) -> Any:
+def sampson_distance(R: Any, t: Any, x_ref: Any, x_cur: Any, f_px: float, signed: bool) -> F64:
     """Sampson distance (pixels) of (N, 3) normalised ray pairs (z = 1) to the epipolar
     geometry of ``(R, t)``: signed ``e * (f / sqrt(den))`` or ``f * |e| / sqrt(den)``."""
     E = np.empty((3, 3))
@@ -357,7 +362,7 @@ def sampson_distance(R: Any, t: Any, x_ref: Any, x_cur: Any, f_px: float, signed
 
 
 @njit(cache=True)
-def sampson_jacobian(R: Any, t: Any, x_ref: Any, x_cur: Any, f_px: float, J: Any) -> Any:
+def sampson_jacobian(R: Any, t: Any, x_ref: Any, x_cur: Any, f_px: float, J: Any) -> F64:
     """Signed Sampson residuals (px) of (N, 3) ray pairs under ``(R, t)`` and, into ``J``
     (N, 6), their Jacobian in a left rotation increment and a translation increment (the
     formulas of ``estimation.motion._sampson_jacobian``, term by term)."""
@@ -447,7 +452,7 @@ def _solve6(M: Any, y: Any) -> bool:
 
 
 @njit(cache=True)
-def flow_hypotheses(L: Any, flow: Any, idx: Any, ridge: float, thr2: float) -> Any:
+def flow_hypotheses(L: Any, flow: Any, idx: Any, ridge: float, thr2: float) -> tuple[int, int, npt.NDArray[np.bool_]]:
     """Score 3-point twist hypotheses of ``estimation.flow.velocity_ransac``.
 
     For each row of ``idx`` (k, 3), the twist that fits the three points' interaction
@@ -552,7 +557,7 @@ def _flow_fit(L: Any, flow: Any, w: Any, M: Any, x: Any) -> bool:
 
 
 @njit(cache=True)
-def flow_refit(L: Any, flow: Any, mask: Any, thr2: float, robust_iters: int) -> Any:
+def flow_refit(L: Any, flow: Any, mask: Any, thr2: float, robust_iters: int) -> tuple[bool, F64, F64]:
     """The refits after ``estimation.flow.velocity_ransac``'s hypotheses, in one call.
 
     From the RANSAC inliers ``mask``: a least-squares fit on them, inliers re-selected

@@ -25,7 +25,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 import cv2
 import numpy as np
@@ -57,12 +57,14 @@ class BaselineVO:
         self.dist = dist
         self.mode = mode
         self.baseline_m = baseline_m
-        self.sift = cv2.SIFT_create()
+        self.sift = cv2.SIFT.create()
         self.bf = cv2.BFMatcher(cv2.NORM_L2)
-        self.prev: tuple[F64, npt.NDArray[np.float32], F64] | None = None  # keypoints, descriptors, 3D
+        self.prev: tuple[F64, npt.NDArray[np.float32] | None, F64] | None = None  # keypoints, descriptors, 3D
         self.T_world_cam = np.eye(4)
 
-    def _match(self, d1: npt.NDArray[np.float32], d2: npt.NDArray[np.float32]) -> list[tuple[int, int]]:
+    def _match(
+        self, d1: npt.NDArray[np.float32] | None, d2: npt.NDArray[np.float32] | None
+    ) -> list[tuple[int, int]]:
         if d1 is None or d2 is None or len(d1) < 2 or len(d2) < 2:
             return []
         out = []
@@ -74,7 +76,7 @@ class BaselineVO:
     def _points_3d(
         self,
         pts: F64,
-        desc: npt.NDArray[np.float32],
+        desc: npt.NDArray[np.float32] | None,
         depth_m: npt.NDArray[np.float32] | None,
         right: npt.NDArray[np.uint8] | None,
     ) -> F64:
@@ -86,13 +88,14 @@ class BaselineVO:
             d = depth_m[v, u].astype(np.float64)
             z = np.where(d > 0, d, np.nan)
         elif right is not None and self.baseline_m:
-            kr, dr = self.sift.detectAndCompute(right, None)
+            kr, dr_mat = self.sift.detectAndCompute(right, None)
+            dr = cast("npt.NDArray[np.float32] | None", dr_mat)  # SIFT: (N, 128) float32, None if no keypoint
             pr = np.array([k.pt for k in kr]) if kr else np.empty((0, 2))
             for i, j in self._match(desc, dr):
                 disp = pts[i, 0] - pr[j, 0]
                 if abs(pts[i, 1] - pr[j, 1]) < 2.0 and disp > 0.5:
                     z[i] = fx * self.baseline_m / disp
-        return np.c_[(pts[:, 0] - cx) / fx * z, (pts[:, 1] - cy) / fy * z, z]
+        return np.column_stack(((pts[:, 0] - cx) / fx * z, (pts[:, 1] - cy) / fy * z, z))
 
     def process(
         self,
@@ -101,7 +104,8 @@ class BaselineVO:
         right: npt.NDArray[np.uint8] | None = None,
     ) -> tuple[F64, int]:
         """Process one frame; returns (T_world_camera, inliers)."""
-        kps, desc = self.sift.detectAndCompute(gray, None)
+        kps, desc_mat = self.sift.detectAndCompute(gray, None)
+        desc = cast("npt.NDArray[np.float32] | None", desc_mat)  # SIFT: (N, 128) float32, None if no keypoint
         pts = np.array([k.pt for k in kps], dtype=np.float64) if kps else np.empty((0, 2))
         X = (
             self._points_3d(pts, desc, depth_m, right)
@@ -130,13 +134,13 @@ class BaselineVO:
                 E, mask = cv2.findEssentialMat(p0, p1, self.K, method=cv2.RANSAC, prob=0.999, threshold=1.0)
                 if E is not None and E.shape == (3, 3):
                     n_inl, R, t, mask = cv2.recoverPose(E, p0, p1, self.K, mask=mask)
-                    inl = mask.ravel() > 0
-                if E is not None and E.shape == (3, 3) and np.count_nonzero(inl) >= 5:
+                    inlier = mask.ravel() > 0
+                if E is not None and E.shape == (3, 3) and np.count_nonzero(inlier) >= 5:
                     P0 = self.K @ np.eye(3, 4)
                     P1 = self.K @ np.c_[R, t]
-                    Xh = cv2.triangulatePoints(P0, P1, p0[inl].T, p1[inl].T)
+                    Xh = cv2.triangulatePoints(P0, P1, p0[inlier].T, p1[inlier].T)
                     z_tri = Xh[2] / Xh[3]
-                    z_meas = np.array([p_X[i, 2] for (i, _), k in zip(matches, inl, strict=True) if k])
+                    z_meas = np.array([p_X[i, 2] for (i, _), k in zip(matches, inlier, strict=True) if k])
                     ok = np.isfinite(z_meas) & (z_tri > 0)
                     if np.count_nonzero(ok) >= 3:
                         s = float(np.median(z_meas[ok] / z_tri[ok]))

@@ -33,11 +33,11 @@ F64 = npt.NDArray[np.float64]
 
 def rotate_rotvec(points: F64, rotvecs: F64) -> F64:
     """Rotate points (N, 3) by rotation vectors (N, 3) (Rodrigues' formula, vectorised)."""
-    theta = np.linalg.norm(rotvecs, axis=1)[:, None]
+    theta: F64 = np.linalg.norm(rotvecs, axis=1)[:, None]
     with np.errstate(invalid="ignore", divide="ignore"):
-        k = np.where(theta > 1e-12, rotvecs / theta, 0.0)
+        k: F64 = np.where(theta > 1e-12, rotvecs / theta, 0.0)
     cos, sin = np.cos(theta), np.sin(theta)
-    dot = np.sum(points * k, axis=1)[:, None]
+    dot: F64 = np.sum(points * k, axis=1)[:, None]
     return cos * points + sin * np.cross(k, points) + dot * (1.0 - cos) * k
 
 

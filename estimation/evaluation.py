@@ -330,11 +330,11 @@ def rpe_pairs(
             raise EstimationError(f"RPE delta in frames must be an integer, got {delta}")
         d = int(delta)
         if all_pairs:
-            i = np.arange(max(n - d, 0))
-            pairs = np.column_stack([i, i + d])
+            first = np.arange(max(n - d, 0))
+            pairs = np.column_stack([first, first + d])
         else:
-            ids = np.arange(0, n, d)
-            pairs = np.column_stack([ids[:-1], ids[1:]])
+            every = np.arange(0, n, d)
+            pairs = np.column_stack([every[:-1], every[1:]])
     else:
         steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
         if all_pairs:

@@ -19,7 +19,9 @@ except OpenCV's own internals.
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -35,16 +37,16 @@ Points2 = npt.NDArray[np.float32]
 """Pixel positions, shape (N, 2), float32."""
 
 
-def as_gray(image: npt.NDArray[np.generic]) -> npt.NDArray[np.uint8]:
+def as_gray(image: npt.NDArray[np.integer[Any] | np.floating[Any]]) -> npt.NDArray[np.uint8]:
     """Return an 8-bit grayscale view/copy of ``image`` (gray, BGR or BGRA)."""
     if image.ndim == 2:
         if image.dtype == np.uint8:
-            return image  # type: ignore[return-value]
-        return cv2.convertScaleAbs(image)  # type: ignore[return-value]
+            return cast("npt.NDArray[np.uint8]", image)
+        return cast("npt.NDArray[np.uint8]", cv2.convertScaleAbs(image))
     if image.ndim == 3 and image.shape[2] == 3:
-        return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)  # type: ignore[return-value]
+        return cast("npt.NDArray[np.uint8]", cv2.cvtColor(image, cv2.COLOR_BGR2GRAY))
     if image.ndim == 3 and image.shape[2] == 4:
-        return cv2.cvtColor(image, cv2.COLOR_BGRA2GRAY)  # type: ignore[return-value]
+        return cast("npt.NDArray[np.uint8]", cv2.cvtColor(image, cv2.COLOR_BGRA2GRAY))
     raise EstimationError(f"image of shape {image.shape} is not gray, BGR or BGRA; pass an H x W (x 3) array")
 
 
@@ -77,8 +79,8 @@ class GridDetector:
         self.fast_threshold = fast_threshold
         self.border_px = border_px
         self._threshold = fast_threshold
-        self._fast = cv2.FastFeatureDetector_create(threshold=fast_threshold, nonmaxSuppression=True)
-        self._fast_low = cv2.FastFeatureDetector_create(threshold=5, nonmaxSuppression=True)
+        self._fast = cv2.FastFeatureDetector.create(threshold=fast_threshold, nonmaxSuppression=True)
+        self._fast_low = cv2.FastFeatureDetector.create(threshold=5, nonmaxSuppression=True)
 
     def detect(
         self,
@@ -114,10 +116,10 @@ class GridDetector:
             kps = self._fast_low.detect(gray, None)
         if not kps:
             return np.empty((0, 2), np.float32)
-        pts = cv2.KeyPoint_convert(kps).reshape(-1, 2)
+        pts = np.asarray(cv2.KeyPoint.convert(kps), np.float32).reshape(-1, 2)
         resp = np.fromiter((k.response for k in kps), dtype=np.float32, count=len(kps))
         b = self.border_px
-        keep = (pts[:, 0] >= b) & (pts[:, 0] < w - b) & (pts[:, 1] >= b) & (pts[:, 1] < h - b)
+        keep: npt.NDArray[np.bool_] = (pts[:, 0] >= b) & (pts[:, 0] < w - b) & (pts[:, 1] >= b) & (pts[:, 1] < h - b)
         pts, resp = pts[keep], resp[keep]
         if len(pts) == 0:
             return pts
@@ -174,7 +176,7 @@ class Features:
     """
 
     pts_px: Points2
-    descriptors: npt.NDArray[np.generic]
+    descriptors: npt.NDArray[np.integer[Any] | np.floating[Any]]
     norm: int
 
     def __len__(self) -> int:
@@ -191,11 +193,12 @@ class DescriptorExtractor:
 
     def __init__(self, kind: str = "orb", max_features: int = 1000) -> None:
         kind = kind.lower()
+        self._det: cv2.Feature2D
         if kind == "orb":
-            self._det = cv2.ORB_create(nfeatures=max_features, fastThreshold=12)
+            self._det = cv2.ORB.create(nfeatures=max_features, fastThreshold=12)
             self.norm = cv2.NORM_HAMMING
         elif kind == "sift":
-            self._det = cv2.SIFT_create(nfeatures=max_features)
+            self._det = cv2.SIFT.create(nfeatures=max_features)
             self.norm = cv2.NORM_L2
         else:
             raise EstimationError(f"unknown descriptor kind {kind!r}; use 'orb' or 'sift'")
@@ -208,14 +211,16 @@ class DescriptorExtractor:
             width = 32 if self.kind == "orb" else 128
             dtype = np.uint8 if self.kind == "orb" else np.float32
             return Features(np.empty((0, 2), np.float32), np.empty((0, width), dtype), self.norm)
-        return Features(cv2.KeyPoint_convert(kps).reshape(-1, 2), desc, self.norm)
+        return Features(np.asarray(cv2.KeyPoint.convert(kps), np.float32).reshape(-1, 2), desc, self.norm)
 
     def compute_at(
         self, gray: npt.NDArray[np.uint8], pts_px: Points2, size_px: float = 31.0
     ) -> tuple[Features, npt.NDArray[np.intp]]:
         """Describe given positions. Returns the features and the indices of ``pts_px`` kept
         (the extractor drops points too close to the border)."""
-        kps = [cv2.KeyPoint(float(x), float(y), size_px, -1, 0, 0, i) for i, (x, y) in enumerate(pts_px)]
+        kps: Sequence[cv2.KeyPoint] = [
+            cv2.KeyPoint(float(x), float(y), size_px, -1, 0, 0, i) for i, (x, y) in enumerate(pts_px)
+        ]
         kps, desc = self._det.compute(gray, kps)
         if desc is None or not kps:
             width = 32 if self.kind == "orb" else 128

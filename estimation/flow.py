@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import logging
 import math
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -103,9 +104,18 @@ def track_klt(
         flags = cv2.OPTFLOW_USE_INITIAL_FLOW
     win = (win_px, win_px)
     criteria = _CRITERIA if max_iters == _CRITERIA[1] else (_CRITERIA[0], max_iters, _CRITERIA[2])
-    p1, st1, _ = cv2.calcOpticalFlowPyrLK(
-        prev, cur, p0, p1_init, winSize=win, maxLevel=levels, criteria=criteria, flags=flags
+    p1_mat, st1_mat, _ = cv2.calcOpticalFlowPyrLK(
+        prev,
+        cur,
+        p0,
+        p1_init,  # type: ignore[arg-type]  # cv2's stub requires nextPts; None means no initial flow
+        winSize=win,
+        maxLevel=levels,
+        criteria=criteria,
+        flags=flags,
     )
+    p1 = cast("npt.NDArray[np.float32]", p1_mat)  # (N, 1, 2)
+    st1 = cast("npt.NDArray[np.uint8]", st1_mat)  # (N, 1)
     if fb_max_px is None:
         return p1.reshape(-1, 2), st1.ravel() == 1
     ok = st1.ravel() == 1
@@ -119,7 +129,7 @@ def track_klt(
     if len(sel) == 0:
         return p1.reshape(-1, 2), ok
     p0s = p0[sel]
-    p0b, st2, _ = cv2.calcOpticalFlowPyrLK(
+    p0b_mat, st2_mat, _ = cv2.calcOpticalFlowPyrLK(
         cur,
         prev,
         np.ascontiguousarray(p1[sel]),
@@ -129,6 +139,7 @@ def track_klt(
         criteria=criteria,
         flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
     )
+    p0b, st2 = cast("npt.NDArray[np.float32]", p0b_mat), cast("npt.NDArray[np.uint8]", st2_mat)
     fb = np.einsum("nij,nij->n", p0b - p0s, p0b - p0s)
     ok[sel] = (st2.ravel() == 1) & (fb < fb_max_px * fb_max_px)
     return p1.reshape(-1, 2), ok
@@ -249,6 +260,11 @@ def polish_motion(T_ref_cur: F64, xn_ref: F64, z_ref_m: F64, xn_cur: F64, huber:
     return invert(refine_pose(invert(T_ref_cur), X_ref, xn_cur, np.eye(3), huber_px=huber))
 
 
+def _bytes(descriptors: npt.NDArray[np.integer[Any] | np.floating[Any]]) -> npt.NDArray[np.uint8]:
+    """Binary (Hamming-norm) descriptors as the uint8 array they are."""
+    return cast("npt.NDArray[np.uint8]", descriptors)
+
+
 def stereo_altitude_m(
     left: npt.NDArray[np.uint8],
     right: npt.NDArray[np.uint8],
@@ -274,7 +290,7 @@ def stereo_altitude_m(
     if len(il) < 5:
         return math.nan, len(il)
     dist = (
-        np.count_nonzero(np.unpackbits(fl.descriptors[il] ^ fr.descriptors[ir], axis=1), axis=1)
+        np.count_nonzero(np.unpackbits(_bytes(fl.descriptors)[il] ^ _bytes(fr.descriptors)[ir], axis=1), axis=1)
         if fl.norm == cv2.NORM_HAMMING
         else np.linalg.norm(fl.descriptors[il].astype(np.float32) - fr.descriptors[ir].astype(np.float32), axis=1)
     )

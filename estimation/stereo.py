@@ -119,7 +119,7 @@ class DenseDisparity:
 
     def __init__(self, num_disparities: int = 64, block_size: int = 5) -> None:
         nd = max(16, (num_disparities + 15) // 16 * 16)
-        self._sgbm = cv2.StereoSGBM_create(
+        self._sgbm = cv2.StereoSGBM.create(
             minDisparity=0,
             numDisparities=nd,
             blockSize=block_size,

@@ -35,10 +35,10 @@ import math
 import tomllib
 import types
 import typing
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, TypeVar, overload
 
 import numpy as np
 
@@ -67,6 +67,38 @@ __all__ = [
 ]
 
 T = TypeVar("T")
+
+
+@overload
+def setting(
+    default: T,
+    *,
+    help: str = "",
+    min: float | None = None,
+    max: float | None = None,
+    length: int | None = None,
+) -> T: ...
+
+
+@overload
+def setting(
+    *,
+    help: str = "",
+    min: float | None = None,
+    max: float | None = None,
+    length: int | None = None,
+    default_factory: Callable[[], T],
+) -> T: ...
+
+
+@overload
+def setting(
+    *,
+    help: str = "",
+    min: float | None = None,
+    max: float | None = None,
+    length: int | None = None,
+) -> Any: ...  # a required key: as with dataclasses.field, the field's annotation gives the type
 
 
 def setting(

@@ -73,8 +73,8 @@ MOCAP_FRAME_ID = "mocap"
 R_ENU_NED: Rotation = Rotation.from_matrix([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 R_FLU_FRD: Rotation = Rotation.from_matrix([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
 
-_SWAP_ENU_NED = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
-_FLIP_FLU_FRD = np.array([1.0, -1.0, -1.0])
+_SWAP_ENU_NED: npt.NDArray[np.float64] = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+_FLIP_FLU_FRD: npt.NDArray[np.float64] = np.array([1.0, -1.0, -1.0])
 
 
 def _as_vec(values: Sequence[float] | npt.ArrayLike, name: str = "vector") -> npt.NDArray[np.float64]:

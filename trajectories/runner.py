@@ -169,7 +169,7 @@ class FlightRunner:
         Only in the main thread (elsewhere this does nothing).
         """
         loop = asyncio.get_running_loop()
-        installed: list[tuple[int, Any]] = []
+        installed: list[tuple[signal.Signals, Any]] = []
         try:
             for sig in (signal.SIGINT, signal.SIGTERM):
                 try:
@@ -518,7 +518,7 @@ async def fly_plan(
         if link is None:
             from flightkit.link import open_link
 
-            link = await stack.enter_async_context(open_link(lab.link, lab.vehicle.autopilot, clock))  # type: ignore[type-var]
+            link = await stack.enter_async_context(open_link(lab.link, lab.vehicle.autopilot, clock))
         if mocap is None:
             mocap = await stack.enter_async_context(open_lab_mocap(lab, clock))
         assert link is not None and mocap is not None

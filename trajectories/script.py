@@ -117,7 +117,7 @@ class Flight:
             if link is None:
                 from flightkit.link import open_link
 
-                link = await stack.enter_async_context(  # type: ignore[type-var]
+                link = await stack.enter_async_context(
                     open_link(self.lab.link, self.lab.vehicle.autopilot, self.clock)
                 )
             mocap = self._mocap

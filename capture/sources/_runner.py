@@ -45,6 +45,11 @@ class SourceThread(Running):
     def _run_loop(self) -> None:  # pragma: no cover - abstract
         raise NotImplementedError
 
+    @property
+    def keys(self) -> list[str]:  # pragma: no cover - abstract
+        """The bus keys the source publishes on."""
+        raise NotImplementedError
+
     def _close_outputs(self) -> None:
         """Undeclare publishers; called by :meth:`stop` after the thread ended."""
 

@@ -28,7 +28,7 @@ from __future__ import annotations
 import logging
 import os
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -253,7 +253,7 @@ class OpenCVCameraPublisher(SourceThread):
 
     def _publish(self, stamp_ns: int, bgr: npt.NDArray[np.uint8]) -> None:
         if bgr.ndim == 2:
-            bgr = cv2.cvtColor(bgr, cv2.COLOR_GRAY2BGR)
+            bgr = cast("npt.NDArray[np.uint8]", cv2.cvtColor(bgr, cv2.COLOR_GRAY2BGR))
         if self._jpeg is not None:
             self._jpeg.publish(stamp_ns, bgr)
         else:
@@ -267,11 +267,12 @@ class OpenCVCameraPublisher(SourceThread):
         self._count()
 
     def _retrieve(self, cap: cv2.VideoCapture) -> npt.NDArray[np.uint8] | None:
-        ok, frame = cap.retrieve(self._frame)
-        if not ok or frame is None:
+        ok, retrieved = cap.retrieve(self._frame)
+        if not ok or retrieved is None:
             return None
+        frame = cast("npt.NDArray[np.uint8]", retrieved)  # 8-bit BGR (or gray)
         self._frame = frame  # OpenCV writes the next frame into this buffer (no fresh allocation)
-        return frame  # type: ignore[no-any-return]
+        return frame
 
     def _run_file(self) -> None:
         period = 1.0 / self._fps

@@ -24,7 +24,9 @@ and are what the unit tests cover; the device loop needs the package and a camer
 
 from __future__ import annotations
 
+import importlib
 import logging
+from types import ModuleType
 from typing import Any
 
 import numpy as np
@@ -50,20 +52,19 @@ logger = logging.getLogger(__name__)
 _PLUMB_BOB_LIKE = {"brown_conrady", "inverse_brown_conrady", "modified_brown_conrady", "none"}
 
 
-def import_realsense() -> Any:
+def import_realsense() -> ModuleType:
     """Import ``pyrealsense2`` or say how to install it.
 
     Raises:
         CaptureError: the package is not installed.
     """
     try:
-        import pyrealsense2 as rs  # type: ignore[import-not-found]
+        return importlib.import_module("pyrealsense2")
     except ImportError as exc:
         raise CaptureError(
             "the RealSense source needs pyrealsense2, which is not installed; "
             "install it with 'pip install flightkit[realsense]' (or 'pip install pyrealsense2')"
         ) from exc
-    return rs
 
 
 def _model_name(model: Any) -> str:
@@ -176,6 +177,12 @@ class RealSensePublisher(SourceThread):
         self.model: CameraModel | None = None
         self.depth_scale_m = 0.001
         self._depth_mm: npt.NDArray[np.uint16] | None = None
+
+    @property
+    def keys(self) -> list[str]:
+        """The image and camera-info keys of the colour (and, when enabled, depth) streams."""
+        names = ("color", "depth") if self.depth_enabled else ("color",)
+        return [k for n in names for k in (self._keys.camera_image(n), self._keys.camera_info(n))]
 
     def _start_pipeline(self) -> tuple[Any, Any]:
         rs = self._rs

@@ -236,7 +236,11 @@ class MapServer(Running):
             self._order_ids += 1
             order = NavOrder(self._order_ids, x, y, z, heading_rad)
             for port, rid in ports:
-                self.transports[port].call(lambda ep, rid=rid: ep.session(rid).send_nav_order(order))
+
+                def send(ep: ServerEndpoint, rid: int = rid) -> int:
+                    return ep.session(rid).send_nav_order(order)
+
+                self.transports[port].call(send)
                 state = self._robot(port, rid)
                 state.orders_sent += 1
             self._write_log(

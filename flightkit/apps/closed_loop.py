@@ -36,7 +36,7 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
@@ -45,6 +45,9 @@ from flightkit.clock import ONE_PROCESS_WALL_STEP_S, Clock, SimClock
 from flightkit.config import Autopilot, LabConfig, LinkBackend
 from flightkit.frames import Transform, angle_diff_rad
 from flightkit.link.base import ExternalPoseKind
+
+if TYPE_CHECKING:
+    from flightkit.datasets.trajectory import Trajectory
 
 __all__ = ["ClosedLoopReport", "fly_closed_loop", "vision_fusion_params"]
 
@@ -188,7 +191,7 @@ class _PoseHistory:
         near = Ta if w < 0.5 else Tb
         return Transform(near.rotation, (1 - w) * Ta.translation + w * Tb.translation)
 
-    def trajectory(self) -> Any:
+    def trajectory(self) -> Trajectory:
         from flightkit.datasets.trajectory import Trajectory
 
         return Trajectory.from_transforms(self.stamps_ns, self.poses, name="mocap")

@@ -615,7 +615,7 @@ class CameraInfo:
 
 # --------------------------------------------------------------------------- registry
 
-MESSAGE_TYPES: dict[str, Any] = {
+MESSAGE_TYPES: dict[str, type[Message]] = {
     cls.TYPE: cls
     for cls in (PoseStamped, TransformStamped, TFMessage, Odometry, Image, CompressedImage, CameraInfo)
 }
@@ -625,7 +625,7 @@ for _cls in MESSAGE_TYPES.values():
     _cls.SCHEMA = schema_text(_cls.TYPE)
 
 
-def decode_message(msgtype: str, payload: bytes | bytearray | memoryview) -> Any:
+def decode_message(msgtype: str, payload: bytes | bytearray | memoryview) -> Message:
     """Decode a payload of the named type (full ROS 2 name).
 
     Raises:

@@ -42,7 +42,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from types import TracebackType
-from typing import Any, NamedTuple, Self
+from typing import Any, NamedTuple, Self, cast
 
 import zenoh
 
@@ -160,7 +160,9 @@ class BusPublisher:
         In peer mode it can be True a few milliseconds before samples are actually routed
         to a subscriber that was just declared elsewhere; do not use it as a handshake.
         """
-        return bool(self._pub.matching_status.matching)
+        # zenoh's stub says the property is a bool; at run time it is a MatchingStatus.
+        status = cast("zenoh.MatchingStatus", self._pub.matching_status)
+        return status.matching
 
     def put(self, payload: bytes | bytearray, stamp_ns: int) -> int:
         """Send one encoded payload stamped ``stamp_ns``; returns its sequence number.

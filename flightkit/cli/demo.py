@@ -72,12 +72,13 @@ def run(args: argparse.Namespace) -> int:
         report = asyncio.run(fly_closed_loop(cfg, plan, out, speed=args.speed))
         print(report.format())
         return 0 if report.ok else 1
-    last = {"t": 0.0, "phase": ""}
+    last_t, last_phase = 0.0, ""
 
     def status(s: Any) -> None:
+        nonlocal last_t, last_phase
         now = time.monotonic()
-        if now - last["t"] >= 2.0 or s.phase != last["phase"]:
-            last["t"], last["phase"] = now, s.phase
+        if now - last_t >= 2.0 or s.phase != last_phase:
+            last_t, last_phase = now, s.phase
             print(f"      {s.line()}", flush=True)
 
     result = asyncio.run(

@@ -24,9 +24,11 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import cast
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 
 from flightkit.bus.msgs import CameraInfo
 from flightkit.datasets.base import CameraIntrinsics, SequenceKind, StereoRectification
@@ -133,9 +135,14 @@ def stereo_rectification(left: EurocCamera, right: EurocCamera) -> StereoRectifi
         T_right_left=T_right_left,
         rectified=rectified,
         baseline_m=baseline,
-        maps_left=(maps_left[0], maps_left[1]),
-        maps_right=(maps_right[0], maps_right[1]),
+        maps_left=(_f32(maps_left[0]), _f32(maps_left[1])),
+        maps_right=(_f32(maps_right[0]), _f32(maps_right[1])),
     )
+
+
+def _f32(m: cv2.typing.MatLike) -> npt.NDArray[np.float32]:
+    """A CV_32FC1 map from OpenCV, typed as what it is."""
+    return cast("npt.NDArray[np.float32]", m)
 
 
 def _read_image_csv(path: Path) -> tuple[np.ndarray, list[Path]]:

@@ -12,6 +12,7 @@ import logging
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import cast
 
 import cv2
 import numpy as np
@@ -45,6 +46,11 @@ def _imread(path: Path, flags: int, what: str) -> npt.NDArray[np.generic]:
             raise DatasetError(f"{what} {path} does not exist; is the dataset folder complete?")
         raise DatasetError(f"{what} {path} cannot be decoded by OpenCV; is the file truncated?")
     return np.asarray(img)
+
+
+def _u8(image: cv2.typing.MatLike) -> npt.NDArray[np.uint8]:
+    """OpenCV's result of an operation on uint8 images, typed as what it is."""
+    return cast("npt.NDArray[np.uint8]", image)
 
 
 def read_gray(path: Path) -> npt.NDArray[np.uint8]:
@@ -187,18 +193,18 @@ class FileSequence:
         color: npt.NDArray[np.uint8] | None = None
         if self._color:
             color = read_color(f.image)
-            gray = cv2.cvtColor(color, cv2.COLOR_BGR2GRAY)
+            gray = cast("npt.NDArray[np.uint8]", cv2.cvtColor(color, cv2.COLOR_BGR2GRAY))
         else:
             gray = read_gray(f.image)
         right = read_gray(f.right) if f.right is not None else None
         rect = self.rectification
         T_world_camera = f.T_world_camera  # noqa: N806
         if rect is not None:
-            gray = cv2.remap(gray, rect.maps_left[0], rect.maps_left[1], cv2.INTER_LINEAR)
+            gray = _u8(cv2.remap(gray, rect.maps_left[0], rect.maps_left[1], cv2.INTER_LINEAR))
             if right is not None:
-                right = cv2.remap(right, rect.maps_right[0], rect.maps_right[1], cv2.INTER_LINEAR)
+                right = _u8(cv2.remap(right, rect.maps_right[0], rect.maps_right[1], cv2.INTER_LINEAR))
             if color is not None:
-                color = cv2.remap(color, rect.maps_left[0], rect.maps_left[1], cv2.INTER_LINEAR)
+                color = _u8(cv2.remap(color, rect.maps_left[0], rect.maps_left[1], cv2.INTER_LINEAR))
             if T_world_camera is not None:
                 T_world_camera = T_world_camera @ Transform.from_matrix(_rot4(rect.R_left_rect))  # noqa: N806
         depth = None

@@ -125,7 +125,7 @@ class RawMessage:
     log_time_ns: int
     publish_time_ns: int
     sequence: int
-    data: bytes | memoryview
+    data: bytes
 
 
 @dataclass(frozen=True, slots=True)

@@ -19,6 +19,7 @@ import re
 from pathlib import Path
 
 import numpy as np
+import numpy.typing as npt
 
 from flightkit.datasets.base import CameraIntrinsics, SequenceKind
 from flightkit.datasets.files import FileSequence, FrameFiles, require
@@ -44,7 +45,7 @@ def is_sevenscenes_folder(path: Path) -> bool:
     return any(folder.glob("frame-*.color.png")) or any(folder.glob("frame-*.pose.txt"))
 
 
-def _read_matrix(path: Path, shape: tuple[int, int]) -> np.ndarray:
+def _read_matrix(path: Path, shape: tuple[int, int]) -> npt.NDArray[np.float64]:
     try:
         values = [float(v) for v in path.read_text(encoding="utf-8").split()]
     except ValueError as exc:
@@ -69,8 +70,8 @@ def open_sevenscenes(path: Path, intrinsics: CameraIntrinsics | None = None) -> 
     if K is None:
         k_file = path / "camera-intrinsics.txt"
         if k_file.is_file():
-            m = _read_matrix(k_file, (3, 3))
-            K = CameraIntrinsics.from_K(m, 640, 480)  # noqa: N806
+            K_file = _read_matrix(k_file, (3, 3))  # noqa: N806
+            K = CameraIntrinsics.from_K(K_file, 640, 480)  # noqa: N806
         else:
             K = SEVEN_SCENES_INTRINSICS  # noqa: N806
     files: list[FrameFiles] = []

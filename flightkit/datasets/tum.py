@@ -295,6 +295,7 @@ def to_tum_depth(arr: npt.NDArray[Any], encoding: str) -> npt.NDArray[np.uint16]
     Raises:
         DatasetError: another encoding.
     """
+    scaled: npt.NDArray[np.float32]
     if encoding in ("16UC1", "mono16"):
         scaled = arr.astype(np.float32) * np.float32(TUM_DEPTH_FACTOR / 1000.0)  # mm -> 1/5000 m
     elif encoding == "32FC1":

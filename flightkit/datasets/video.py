@@ -23,7 +23,7 @@ import json
 import math
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -86,6 +86,7 @@ def read_calibration(path: Path) -> dict[str, Any]:
     Raises:
         DatasetError: unreadable file or a missing key (named).
     """
+    data: dict[str, Any]
     if path.suffix.lower() == ".json":
         try:
             data = json.loads(path.read_text(encoding="utf-8"))
@@ -192,7 +193,7 @@ class VideoSequence:
                     yield Frame(
                         index=i,
                         stamp_ns=int(self._stamps[i]),
-                        gray=cv2.cvtColor(color, cv2.COLOR_BGR2GRAY),
+                        gray=cast("npt.NDArray[np.uint8]", cv2.cvtColor(color, cv2.COLOR_BGR2GRAY)),
                         color_bgr=color,
                         T_world_camera=poses[i] if poses is not None else None,
                     )

@@ -16,9 +16,12 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from flightkit.errors import ConfigError
+
+if TYPE_CHECKING:
+    from flightkit.link.mavlink.encoding import MavlinkMessage
 
 __all__ = [
     "SIGNING_EPOCH_NS",
@@ -108,12 +111,13 @@ def apply_signing(mav: Any, settings: SigningSettings, time_ns: int) -> None:
 
 def setup_signing_message(
     mavlink_module: Any, settings: SigningSettings, target_system: int, target_component: int, time_ns: int
-) -> Any:
+) -> MavlinkMessage:
     """A SETUP_SIGNING message that installs ``settings.key`` on the autopilot.
 
     Send it once over a trusted link (USB) before turning signing on; the autopilot stores
     the key (ArduPilot persists it; PX4 stores it in its key file).
     """
-    return mavlink_module.MAVLink_setup_signing_message(
+    msg: MavlinkMessage = mavlink_module.MAVLink_setup_signing_message(
         target_system, target_component, list(settings.key), signing_timestamp(time_ns)
     )
+    return msg

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import cast
 
 import cv2
 import numpy as np
@@ -39,6 +40,11 @@ _LOD_BIAS = 1.5
 texels, twice the spread of the box that a pixel of 2^k texels averages. Measured against
 5x5 supersampling averaged down (floor views 20-50 deg below the horizon, 320x240): mean
 error 1.2-1.6 grey levels at 1.5, 3.2-6.2 at 0 (blurred), 2.3-3.6 point-sampled (aliased)."""
+
+
+def _u8(image: cv2.typing.MatLike) -> npt.NDArray[np.uint8]:
+    """OpenCV's result of an operation on uint8 images, typed as what it is."""
+    return cast("npt.NDArray[np.uint8]", image)
 
 
 def _spread(d2: npt.NDArray[np.float32], d_n: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
@@ -169,7 +175,7 @@ class SimCamera:
     model: PinholeModel
     baseline_m: float = 0.05
     depth_max_m: float = 10.0
-    _rays_cam: npt.NDArray[np.float64] = field(init=False, repr=False)
+    _rays_cam: npt.NDArray[np.float32] = field(init=False, repr=False)
     _mip_atlas: npt.NDArray[np.uint8] = field(init=False, repr=False)
     _mip_x0: npt.NDArray[np.float32] = field(init=False, repr=False)
     _box_lo: npt.NDArray[np.float64] = field(init=False, repr=False)
@@ -183,7 +189,7 @@ class SimCamera:
         # Atlas rows: floor, 4 walls (1024 px each), then one 512-px band per box.
         textures = [make_texture(_TEX_FLOOR_PX, self.scene.seed + 1000 + k) for k in range(5)]
         textures += [
-            cv2.resize(make_texture(_TEX_BOX_PX, self.scene.seed + 1 + i), (_TEX_FLOOR_PX, _TEX_BOX_PX))
+            _u8(cv2.resize(make_texture(_TEX_BOX_PX, self.scene.seed + 1 + i), (_TEX_FLOOR_PX, _TEX_BOX_PX)))
             for i in range(len(self.scene.boxes))
         ]
         atlas = np.ascontiguousarray(np.concatenate(textures, axis=0))
@@ -192,11 +198,11 @@ class SimCamera:
         # two remaps (the levels below and above each pixel's) sample them all.
         mips = [atlas]
         for _ in range(_MIP_LEVELS - 1):
-            mips.append(cv2.pyrDown(mips[-1]))
-        x0 = np.cumsum([0] + [m.shape[1] for m in mips[:-1]])
+            mips.append(_u8(cv2.pyrDown(mips[-1])))
+        x0 = np.cumsum([0] + [mip.shape[1] for mip in mips[:-1]])
         packed = np.zeros((atlas.shape[0], int(x0[-1]) + mips[-1].shape[1], 3), np.uint8)
-        for m, x in zip(mips, x0, strict=True):
-            packed[: m.shape[0], x : x + m.shape[1]] = m
+        for mip, x in zip(mips, x0, strict=True):
+            packed[: mip.shape[0], x : x + mip.shape[1]] = mip
         self._mip_atlas, self._mip_x0 = packed, x0.astype(np.float32)
         self._box_lo = np.array([b.min_xyz_m for b in self.scene.boxes], dtype=np.float64).reshape(-1, 3)
         self._box_hi = np.array([b.max_xyz_m for b in self.scene.boxes], dtype=np.float64).reshape(-1, 3)
@@ -346,8 +352,8 @@ class SimCamera:
         above = cv2.remap(
             self._mip_atlas, u_above, v_above, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=sky
         )
-        img = cv2.blendLinear(below, above, 1.0 - frac, frac)
-        shaded = img * buf.shade.reshape(h, w, 1)
+        img = _u8(cv2.blendLinear(below, above, 1.0 - frac, frac))
+        shaded: npt.NDArray[np.float32] = img * buf.shade.reshape(h, w, 1)
         return np.clip(shaded, 0, 255).astype(np.uint8)
 
     def render(self, T_world_camera: Transform) -> RenderedFrame:
@@ -363,6 +369,6 @@ class SimCamera:
     def render_stereo(self, T_world_left: Transform) -> tuple[npt.NDArray[np.uint8], npt.NDArray[np.uint8]]:
         """Rectified grayscale pair; the right camera sits ``baseline_m`` along the left's x."""
         T_left_right = Transform(translation=np.array([self.baseline_m, 0.0, 0.0]))
-        left = cv2.cvtColor(self._shade(self._cast(T_world_left)), cv2.COLOR_RGB2GRAY)
-        right = cv2.cvtColor(self._shade(self._cast(T_world_left @ T_left_right)), cv2.COLOR_RGB2GRAY)
+        left = _u8(cv2.cvtColor(self._shade(self._cast(T_world_left)), cv2.COLOR_RGB2GRAY))
+        right = _u8(cv2.cvtColor(self._shade(self._cast(T_world_left @ T_left_right)), cv2.COLOR_RGB2GRAY))
         return left, right

@@ -177,7 +177,7 @@ class QuadDynamics:
         self._acc = np.zeros(3)
         self._yaw = wrap_angle_rad(float(yaw_rad))
         self._yaw_rate = 0.0
-        self._on_ground = self._pos[2] <= _GROUND_EPS_M
+        self._on_ground = bool(self._pos[2] <= _GROUND_EPS_M)
         self._armed = False
         self._armed_at_s = 0.0
         self._cmd_vel = np.zeros(3)
@@ -253,7 +253,7 @@ class QuadDynamics:
         if yaw_rad is not None:
             self._yaw = wrap_angle_rad(float(yaw_rad))
         self._yaw_rate = 0.0
-        self._on_ground = self._pos[2] <= _GROUND_EPS_M
+        self._on_ground = bool(self._pos[2] <= _GROUND_EPS_M)
 
     # ------------------------------------------------------------------ state
 

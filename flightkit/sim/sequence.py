@@ -42,7 +42,7 @@ from collections.abc import Callable, Iterator
 from collections.abc import Sequence as SequenceABC
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -369,13 +369,13 @@ class SimSequence:
         if opts.blurred:
             color_rgb = self._blurred_rgb(index, T_wc, color_rgb)
         color_rgb = self._add_noise(color_rgb, rng)
-        gray = cv2.cvtColor(color_rgb, cv2.COLOR_RGB2GRAY)
-        right = None
+        gray = cast("npt.NDArray[np.uint8]", cv2.cvtColor(color_rgb, cv2.COLOR_RGB2GRAY))
+        right: npt.NDArray[np.uint8] | None = None
         if self.stereo:
             right_rgb = self.camera.render(T_wc @ self._T_left_right).color_rgb
             if opts.blurred:
                 right_rgb = self._blurred_rgb(index, T_wc, right_rgb, self._T_left_right)
-            right = cv2.cvtColor(self._add_noise(right_rgb, rng), cv2.COLOR_RGB2GRAY)
+            right = cast("npt.NDArray[np.uint8]", cv2.cvtColor(self._add_noise(right_rgb, rng), cv2.COLOR_RGB2GRAY))
         depth_mm = rendered.depth_mm
         if rng is not None and opts.depth_noise_m_per_m2 > 0.0:
             valid = depth_mm > 0
@@ -387,7 +387,7 @@ class SimSequence:
             index=index,
             stamp_ns=int(self._stamps[index]),
             gray=gray,
-            color_bgr=cv2.cvtColor(color_rgb, cv2.COLOR_RGB2BGR) if self.color else None,
+            color_bgr=cast("npt.NDArray[np.uint8]", cv2.cvtColor(color_rgb, cv2.COLOR_RGB2BGR)) if self.color else None,
             right_gray=right,
             depth_raw=depth_mm,
             depth_scale_m=0.001,

@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
@@ -37,6 +37,7 @@ __all__ = [
     "TYPE_MASK_VELOCITY_ONLY",
     "TYPE_MASK_VELOCITY_YAW",
     "TYPE_MASK_VELOCITY_YAW_RATE",
+    "MavlinkMessage",
     "SetpointFields",
     "check_hard_limits",
     "cmd_name",
@@ -47,6 +48,14 @@ __all__ = [
     "heartbeat_type_for_component",
     "result_name",
 ]
+
+class MavlinkMessage(Protocol):
+    """An outgoing pymavlink message, as far as flightkit uses one (pymavlink ships no types)."""
+
+    def get_type(self) -> str: ...
+
+    def pack(self, mav: Any, force_mavlink1: bool = False) -> bytes: ...
+
 
 # Safety net on every velocity setpoint, whatever the caller's own limits: no indoor lab
 # flight needs more, and a bigger number is a bug (units, frames) rather than a command.
@@ -153,9 +162,9 @@ def encode_velocity_setpoint(setpoint: VelocitySetpoint) -> SetpointFields:
     )
 
 
-def encode_setpoint_message(f: SetpointFields, target: tuple[int, int], time_boot_ms: int) -> Any:
+def encode_setpoint_message(f: SetpointFields, target: tuple[int, int], time_boot_ms: int) -> MavlinkMessage:
     """SET_POSITION_TARGET_LOCAL_NED carrying ``f`` to ``target`` (system, component)."""
-    return mavlink2.MAVLink_set_position_target_local_ned_message(
+    msg: MavlinkMessage = mavlink2.MAVLink_set_position_target_local_ned_message(
         time_boot_ms,
         target[0],
         target[1],
@@ -173,6 +182,7 @@ def encode_setpoint_message(f: SetpointFields, target: tuple[int, int], time_boo
         f.yaw,
         f.yaw_rate,
     )
+    return msg
 
 
 def _pose_ned_frd(pose: ExternalPose) -> tuple[np.ndarray, Rotation]:
@@ -191,13 +201,13 @@ def _upper_triangle_diag(diag: Iterable[float]) -> list[float]:
     return out
 
 
-def encode_vision_position_estimate(pose: ExternalPose) -> Any:
+def encode_vision_position_estimate(pose: ExternalPose) -> MavlinkMessage:
     """VISION_POSITION_ESTIMATE for ``pose``: NED position, FRD attitude as roll/pitch/yaw,
     usec timestamp from ``stamp_ns``, covariance from the pose's standard deviations."""
     pos_ned, R_ned_frd = _pose_ned_frd(pose)
     yaw, pitch, roll = R_ned_frd.as_euler("ZYX")
     cov = _upper_triangle_diag([pose.pos_std_m**2] * 3 + [pose.rot_std_rad**2] * 3)
-    return mavlink2.MAVLink_vision_position_estimate_message(
+    msg: MavlinkMessage = mavlink2.MAVLink_vision_position_estimate_message(
         int(pose.stamp_ns) // 1000,
         float(pos_ned[0]),
         float(pos_ned[1]),
@@ -208,9 +218,10 @@ def encode_vision_position_estimate(pose: ExternalPose) -> Any:
         cov,
         int(pose.reset_counter) & 0xFF,
     )
+    return msg
 
 
-def encode_odometry(pose: ExternalPose) -> Any:
+def encode_odometry(pose: ExternalPose) -> MavlinkMessage:
     """ODOMETRY for ``pose``: frame LOCAL_NED, child frame BODY_FRD (velocity in the body
     frame, as the message defines), quaternion w,x,y,z, covariances; unknown velocity and
     rates are NaN (a NaN first covariance element marks the velocity as unknown)."""
@@ -227,7 +238,7 @@ def encode_odometry(pose: ExternalPose) -> Any:
         vel = [math.nan] * 3
         vel_cov = [math.nan] + [0.0] * 20
     quality = int(pose.quality_pct) if 0 <= pose.quality_pct <= 100 else -1
-    return mavlink2.MAVLink_odometry_message(
+    msg: MavlinkMessage = mavlink2.MAVLink_odometry_message(
         int(pose.stamp_ns) // 1000,
         MAV_FRAME_LOCAL_NED,
         MAV_FRAME_BODY_FRD,
@@ -247,3 +258,4 @@ def encode_odometry(pose: ExternalPose) -> Any:
         mavlink2.MAV_ESTIMATOR_TYPE_MOCAP,
         quality,
     )
+    return msg

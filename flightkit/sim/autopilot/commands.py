@@ -42,6 +42,12 @@ logger = logging.getLogger(__name__)
 
 mav = mavlink2  # enums and message classes
 
+# The results the command handlers return, typed (pymavlink ships no types).
+_RESULT_ACCEPTED: int = mav.MAV_RESULT_ACCEPTED
+_RESULT_DENIED: int = mav.MAV_RESULT_DENIED
+_RESULT_FAILED: int = mav.MAV_RESULT_FAILED
+_RESULT_UNSUPPORTED: int = mav.MAV_RESULT_UNSUPPORTED
+
 
 # type_mask bits of SET_POSITION_TARGET_LOCAL_NED
 _IGNORE_POS = 0b111
@@ -97,13 +103,13 @@ class _AutopilotInbound(_AutopilotTelemetry):
         handler = _COMMANDS.get(command)
         if handler is None:
             logger.debug("unsupported command %d", command)
-            self._ack(msg, command, mav.MAV_RESULT_UNSUPPORTED)
+            self._ack(msg, command, _RESULT_UNSUPPORTED)
             return
         try:
             result = handler(self, msg, params, now, is_int)
         except Exception:
             logger.exception("command %d failed", command)
-            result = mav.MAV_RESULT_FAILED
+            result = _RESULT_FAILED
         if result is not None:
             self._ack(msg, command, result)
 
@@ -111,7 +117,7 @@ class _AutopilotInbound(_AutopilotTelemetry):
         p = self.personality
         if params[0] >= 0.5:
             if self._armed:
-                return mav.MAV_RESULT_ACCEPTED
+                return _RESULT_ACCEPTED
             force = _as_int(params[1]) == _FORCE_ARM_MAGIC
             if not force:
                 reason = self._arming_refusal(now)
@@ -121,21 +127,21 @@ class _AutopilotInbound(_AutopilotTelemetry):
                     self._event("arm_refused", reason)
                     return None
             self._arm(now)
-            return mav.MAV_RESULT_ACCEPTED
+            return _RESULT_ACCEPTED
         if not self._armed:
-            return mav.MAV_RESULT_ACCEPTED
+            return _RESULT_ACCEPTED
         force = _as_int(params[1]) == _FORCE_DISARM_MAGIC
         if not self.dynamics.on_ground and not force:
             self._statustext("Disarming denied: not landed", mav.MAV_SEVERITY_CRITICAL)
             return p.reject_result
         self._disarm(now, p.text("disarmed"), "forced" if force else "command")
-        return mav.MAV_RESULT_ACCEPTED
+        return _RESULT_ACCEPTED
 
     def _cmd_do_set_mode(self, msg: Any, params: list[float], now: float, is_int: bool) -> int | None:
         p = self.personality
         base_mode = _as_int(params[0])
         if not base_mode & mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
-            return mav.MAV_RESULT_UNSUPPORTED
+            return _RESULT_UNSUPPORTED
         if p.autopilot.value == "px4":
             main, sub = _as_int(params[1]), _as_int(params[2])
             custom = main if main > 255 else (main << 16) | (sub << 24)
@@ -153,9 +159,9 @@ class _AutopilotInbound(_AutopilotTelemetry):
         mode = p.mode_of(custom_mode)
         if mode is None:
             logger.info("unknown custom mode %d refused", custom_mode)
-            return mav.MAV_RESULT_UNSUPPORTED if p.autopilot.value == "px4" else mav.MAV_RESULT_FAILED
+            return _RESULT_UNSUPPORTED if p.autopilot.value == "px4" else _RESULT_FAILED
         if mode is self._mode:
-            return mav.MAV_RESULT_ACCEPTED
+            return _RESULT_ACCEPTED
         in_air = not self.dynamics.on_ground
         if mode is p.setpoint_mode and p.stream_required_s > 0.0:
             if (in_air or self._armed) and not self._offboard_signal_ok(now):
@@ -173,7 +179,7 @@ class _AutopilotInbound(_AutopilotTelemetry):
         self._set_mode(mode, "command")
         if mode is p.setpoint_mode and p.loss_action is LossAction.KEEP_THEN_BRAKE:
             self._guided_target = None
-        return mav.MAV_RESULT_ACCEPTED
+        return _RESULT_ACCEPTED
 
     def _cmd_takeoff(self, msg: Any, params: list[float], now: float, is_int: bool) -> int | None:
         p = self.personality
@@ -205,7 +211,7 @@ class _AutopilotInbound(_AutopilotTelemetry):
             if rel <= 0.0:
                 self._statustext(p.text("takeoff_low", alt=1.0), mav.MAV_SEVERITY_WARNING)
                 rel = 1.0
-        self._ack(msg, mav.MAV_CMD_NAV_TAKEOFF, mav.MAV_RESULT_ACCEPTED)
+        self._ack(msg, mav.MAV_CMD_NAV_TAKEOFF, _RESULT_ACCEPTED)
         base = float(self._home_local_enu[2])
         if p.takeoff_mode is not None:
             self._set_mode(p.takeoff_mode, "takeoff command")
@@ -217,18 +223,18 @@ class _AutopilotInbound(_AutopilotTelemetry):
     def _cmd_land(self, msg: Any, params: list[float], now: float, is_int: bool) -> int | None:
         self._set_mode(self.personality.land_mode, "land command")
         self._statustext(self.personality.text("landing"))
-        return mav.MAV_RESULT_ACCEPTED
+        return _RESULT_ACCEPTED
 
     def _cmd_rtl(self, msg: Any, params: list[float], now: float, is_int: bool) -> int | None:
         if self.personality.autopilot.value == "ardupilot" and not self._ready(now):
             return self.personality.reject_result
         self._set_mode(self.personality.rtl_mode, "rtl command")
-        return mav.MAV_RESULT_ACCEPTED
+        return _RESULT_ACCEPTED
 
     def _cmd_loiter(self, msg: Any, params: list[float], now: float, is_int: bool) -> int | None:
         mode = self.personality.hold_mode if self.personality.autopilot.value == "px4" else FlightMode.LOITER
         self._set_mode(mode, "loiter command")
-        return mav.MAV_RESULT_ACCEPTED
+        return _RESULT_ACCEPTED
 
     def _cmd_reposition(self, msg: Any, params: list[float], now: float, is_int: bool) -> int | None:
         if not self._armed or self.dynamics.on_ground:
@@ -251,22 +257,22 @@ class _AutopilotInbound(_AutopilotTelemetry):
             target[2] = alt - self.options.origin_alt_m
         self._hold_target = target
         self._hold_yaw = self._est_yaw_local()
-        return mav.MAV_RESULT_ACCEPTED
+        return _RESULT_ACCEPTED
 
     def _cmd_accept(self, msg: Any, params: list[float], now: float, is_int: bool) -> int | None:
-        return mav.MAV_RESULT_ACCEPTED
+        return _RESULT_ACCEPTED
 
     def _cmd_terminate(self, msg: Any, params: list[float], now: float, is_int: bool) -> int | None:
         if params[0] >= 0.5:
             self._disarm(now, "Flight termination active", "termination")
-        return mav.MAV_RESULT_ACCEPTED
+        return _RESULT_ACCEPTED
 
     def _cmd_set_message_interval(
         self, msg: Any, params: list[float], now: float, is_int: bool
     ) -> int | None:
         msg_id, interval_us = _as_int(params[0]), params[1]
         if msg_id not in _STREAM_BUILDERS:
-            return mav.MAV_RESULT_DENIED
+            return _RESULT_DENIED
         if interval_us < 0:
             self._intervals.pop(msg_id, None)
         elif interval_us == 0:
@@ -278,7 +284,7 @@ class _AutopilotInbound(_AutopilotTelemetry):
         else:
             self._intervals[msg_id] = max(interval_us * 1e-6, 0.001)
         self._next_due[msg_id] = now
-        return mav.MAV_RESULT_ACCEPTED
+        return _RESULT_ACCEPTED
 
     def _cmd_get_message_interval(
         self, msg: Any, params: list[float], now: float, is_int: bool
@@ -290,7 +296,7 @@ class _AutopilotInbound(_AutopilotTelemetry):
             interval = int(self._intervals[msg_id] * 1e6)
         else:
             interval = -1
-        self._ack(msg, mav.MAV_CMD_GET_MESSAGE_INTERVAL, mav.MAV_RESULT_ACCEPTED)
+        self._ack(msg, mav.MAV_CMD_GET_MESSAGE_INTERVAL, _RESULT_ACCEPTED)
         self._send(self._mav.message_interval_encode(msg_id, interval))
         return None
 
@@ -298,21 +304,21 @@ class _AutopilotInbound(_AutopilotTelemetry):
         out = self._build_message(_as_int(params[0]), now, on_request=True)
         if out is None:
             return (
-                mav.MAV_RESULT_UNSUPPORTED
+                _RESULT_UNSUPPORTED
                 if _as_int(params[0]) not in _STREAM_BUILDERS
-                else mav.MAV_RESULT_DENIED
+                else _RESULT_DENIED
             )
-        self._ack(msg, mav.MAV_CMD_REQUEST_MESSAGE, mav.MAV_RESULT_ACCEPTED)
+        self._ack(msg, mav.MAV_CMD_REQUEST_MESSAGE, _RESULT_ACCEPTED)
         self._send(out)
         return None
 
     def _cmd_request_version(self, msg: Any, params: list[float], now: float, is_int: bool) -> int | None:
-        self._ack(msg, mav.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, mav.MAV_RESULT_ACCEPTED)
+        self._ack(msg, mav.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, _RESULT_ACCEPTED)
         self._send(self._autopilot_version())
         return None
 
     def _cmd_request_protocol(self, msg: Any, params: list[float], now: float, is_int: bool) -> int | None:
-        self._ack(msg, mav.MAV_CMD_REQUEST_PROTOCOL_VERSION, mav.MAV_RESULT_ACCEPTED)
+        self._ack(msg, mav.MAV_CMD_REQUEST_PROTOCOL_VERSION, _RESULT_ACCEPTED)
         self._send(self._protocol_version())
         return None
 
