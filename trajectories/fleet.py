@@ -13,8 +13,9 @@ Supervision is on two levels. Each vehicle keeps its own supervisor (stale mocap
 link, pilot, battery: :mod:`trajectories.supervisor`). The fleet supervisor watches the
 separation of every pair (measured, and predicted ``lookahead_s`` ahead at constant velocity,
 :func:`~trajectories.separation.closest_approach`) and what one vehicle's fault does to the
-others (``on_vehicle_fault``: ``land``, the others hold then land; or ``continue``). A lost
-separation makes every airborne vehicle hold, then land. Leaving the block on an exception,
+others (``on_vehicle_fault``: ``land``, the others hold then land; or ``continue``); a vehicle
+its pilot takes over leaves the fleet and the others go on. A lost separation makes every
+airborne vehicle hold, then land. Leaving the block on an exception,
 Ctrl-C or SIGTERM lands every vehicle still flying. :meth:`Fleet.fly` refuses patterns whose
 references come closer than the minimum separation before any vehicle moves.
 """
@@ -50,6 +51,10 @@ from trajectories.supervisor import FaultKind, Geofence, SafetyConfig
 __all__ = ["Fleet", "FleetReport", "FleetVehicle"]
 
 logger = logging.getLogger(__name__)
+
+_LEAVES_ALONE = frozenset({FaultKind.PILOT_TAKEOVER.value})
+"""Faults that take one vehicle out of the fleet without a reaction in the others: its pilot
+took it over on purpose, and the others stay clear of it as they were."""
 
 Verb = Callable[[FlightRunner, str], Awaitable[None]]
 """What a fleet verb does to one vehicle: ``verb(runner, vehicle_name)``."""
@@ -340,9 +345,17 @@ class Fleet:
         if others:
             raise others[0]
         aborts = [e for e in errors if isinstance(e, SafetyAbort)]
-        if aborts and (self.fleet_safety.on_vehicle_fault == "land" or not react or len(aborts) == len(chosen)):
-            first = next((a for a in aborts if a.reason != FaultKind.FLEET.value), aborts[0])
-            raise first
+        # the fleet's flight ends when its own supervisor or policy ended it, or no vehicle is left;
+        # a vehicle its pilot took over (or that faulted under "continue") just leaves the fleet
+        fleet_wide = {FaultKind.FLEET.value, FaultKind.SEPARATION.value, FaultKind.INTERRUPTED.value}
+        ends = [
+            a
+            for a in aborts
+            if a.reason in fleet_wide
+            or (a.reason not in _LEAVES_ALONE and self.fleet_safety.on_vehicle_fault == "land")
+        ]
+        if ends or (aborts and len(aborts) == len(chosen)) or (aborts and not react):
+            raise next((a for a in ends if a.reason != FaultKind.FLEET.value), (ends or aborts)[0])
 
     def _vehicle_faulted(self, name: str, exc: SafetyAbort) -> None:
         v = self.vehicles[name]
@@ -351,7 +364,9 @@ class Fleet:
         self.report.faults.append((t, name, v.fault))
         if exc.reason == FaultKind.FLEET.value:
             return
-        if self.fleet_safety.on_vehicle_fault == "land":
+        if exc.reason in _LEAVES_ALONE:
+            logger.warning("%s: %s; the pilot has it, the other vehicles go on", name, exc)
+        elif self.fleet_safety.on_vehicle_fault == "land":
             logger.warning("%s: %s; the other vehicles hold, then land", name, exc)
             for other in self.vehicles.values():
                 if other.name != name and not other.runner.ended:

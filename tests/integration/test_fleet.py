@@ -13,8 +13,9 @@ import numpy as np
 import pytest
 
 from flightkit.apps.sim_session import sim_fleet_session
-from flightkit.config import load_config
+from flightkit.config import LabConfig, load_config
 from flightkit.errors import PlanError, SafetyAbort
+from flightkit.sim.fleet import fleet_lab_config
 from trajectories.circle import Circle
 from trajectories.plan import PlanSettings
 from trajectories.separation import FleetSafety
@@ -22,6 +23,7 @@ from trajectories.supervisor import FaultKind
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 SPEED = 3.0  # three vehicles' loops, autopilots and one mocap system in one process on 2 cores
+MAVSDK_SPEED = 2.0  # MAVSDK itself runs on wall time (tests/integration/test_fly_patterns.py)
 SETTINGS = PlanSettings(rate_hz=50.0, takeoff_height_m=1.2)
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(300)]
@@ -36,15 +38,26 @@ def on_one_circle(period_s: float = 20.0) -> dict[str, Circle]:
     return {n: dataclasses.replace(base, start_angle_rad=math.radians(a)) for n, a in angles_deg.items()}
 
 
-def lab() -> object:
+def lab() -> LabConfig:
     return load_config(EXAMPLES / "lab_sim.toml")
+
+
+def mixed_fleet() -> LabConfig:
+    """uav1 PX4 over pymavlink, uav2 PX4 over MAVSDK, uav3 ArduPilot over pymavlink."""
+    cfg = fleet_lab_config(lab(), 3)
+    v1, v2, v3 = cfg.vehicles
+    vehicles = (v1, dataclasses.replace(v2, backend="mavsdk"), dataclasses.replace(v3, autopilot="ardupilot"))
+    return dataclasses.replace(cfg, vehicles=vehicles)
 
 
 def test_three_vehicles_fly_one_circle_together(tmp_path: Path) -> None:
     async def go() -> None:
         async with sim_fleet_session(
-            lab(), vehicles=3, speed=SPEED, arm=True, settings=SETTINGS, log_dir=tmp_path
+            mixed_fleet(), speed=MAVSDK_SPEED, arm=True, settings=SETTINGS, log_dir=tmp_path
         ) as (sim, fleet):
+            assert [lab_.personality.vehicle_name.split()[0] for lab_ in sim.labs.values()] == [
+                "PX4", "PX4", "ArduCopter"
+            ]
             assert fleet.names == ("uav1", "uav2", "uav3")
             # each vehicle is its own autopilot, on its own port
             assert len({lab_.port for lab_ in sim.labs.values()}) == 3
@@ -104,7 +117,8 @@ def test_lost_separation_holds_and_lands_every_vehicle() -> None:
                 await fleet.goto({"uav1": (0.0, 0.2, 1.0), "uav2": (0.0, -0.2, 1.0)})
             assert info.value.reason == FaultKind.SEPARATION.value
         assert fleet.report.faults and "below 0.6 m" in fleet.report.faults[0][2]
-        assert fleet.report.min_separation_m > 0.3, fleet.report  # they stopped short of each other
+        # predicted a look-ahead ahead, so they stopped before any pair came closer than the minimum
+        assert fleet.report.min_separation_m >= 0.6, fleet.report
         for n, lab_ in sim.labs.items():
             assert not lab_.autopilot.armed, n
 
@@ -188,3 +202,63 @@ def test_a_fleet_recording_is_grouped_and_exported_per_vehicle(tmp_path: Path) -
         gt = np.loadtxt(tmp_path / "tum" / v / "groundtruth.txt")
         assert len(gt) > 20 and reports[v].associated_groundtruth > 5
         assert abs(float(np.median(gt[:, 2])) - y) < 0.1, (v, gt[:3])
+
+
+def test_a_pilot_takes_one_vehicle_and_ctrl_c_lands_the_others() -> None:
+    from flightkit.config import Autopilot
+    from flightkit.link.base import FlightMode
+    from flightkit.link.mavlink import MavlinkLink
+
+    async def go() -> None:
+        async with sim_fleet_session(lab(), vehicles=3, speed=SPEED, arm=True, settings=SETTINGS) as (sim, fleet):
+            await fleet.takeoff(1.2)
+            # uav3's pilot switches to position mode from a ground station (a second MAVLink client)
+            uav3 = fleet.vehicles["uav3"].config.link
+            gcs_cfg = dataclasses.replace(uav3, source_system=254, source_component=190)
+            async with MavlinkLink(gcs_cfg, Autopilot.PX4, fleet.clock) as gcs:
+                await gcs.set_mode(FlightMode.POSCTL)
+            await fleet.hold(3.0)  # the others go on
+            assert fleet.vehicles["uav3"].fault.startswith("pilot_takeover")
+            assert [n for n, v in fleet.vehicles.items() if not v.fault] == ["uav1", "uav2"]
+
+            async def ctrl_c() -> None:
+                await fleet.clock.sleep(1.0)
+                fleet.interrupt()  # what SIGINT / SIGTERM do
+
+            task = asyncio.ensure_future(ctrl_c())
+            with pytest.raises(SafetyAbort) as info:
+                await fleet.hold(30.0)
+            await task
+            assert info.value.reason == FaultKind.INTERRUPTED.value
+            for n in ("uav1", "uav2"):
+                assert not sim.labs[n].autopilot.armed, n
+            # uav3 stays with its pilot: armed, flying, in the pilot's mode
+            assert sim.labs["uav3"].autopilot.armed and sim.labs["uav3"].truth().pos_enu_m[2] > 1.0
+            assert sim.labs["uav3"].autopilot.mode is FlightMode.POSCTL
+
+    asyncio.run(go())
+
+
+def test_crossing_references_are_refused_before_arming() -> None:
+    from flightkit.clock import SimClock
+    from flightkit.sim.fleet import SimFleet
+    from flightkit.sim.mocap import SimMocapSource
+    from trajectories.fleet_plan import fly_fleet_plan, load_fleet_plan
+
+    fplan = load_fleet_plan(EXAMPLES / "fleet_circle.toml")
+    crossing = dataclasses.replace(
+        fplan, vehicles={**fplan.vehicles, "uav2": dataclasses.replace(fplan.vehicles["uav2"], phase_deg=10.0)}
+    )
+
+    async def go() -> None:
+        sim = SimFleet(fleet_lab_config(lab(), 3), clock=SimClock(SPEED), ready_after_s=0.0).start()
+        try:
+            mocap = SimMocapSource(system=sim.mocap)
+            async with mocap:
+                with pytest.raises(PlanError, match="uav1 and uav2 come 0.1. m close"):
+                    await fly_fleet_plan(crossing, sim.client_config(), clock=sim.clock, mocap=mocap, arm=True)
+            assert not any(lab_.autopilot.armed for lab_ in sim.labs.values())
+        finally:
+            sim.stop()
+
+    asyncio.run(go())
