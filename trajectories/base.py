@@ -21,6 +21,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
+from flightkit.frames import Vec3Tuple
+
 __all__ = [
     "Move",
     "Pattern",
@@ -37,7 +39,8 @@ __all__ = [
     "unwrap_next",
 ]
 
-Vec3 = tuple[float, float, float]
+Vec3 = Vec3Tuple
+"""Deprecated name of :data:`flightkit.frames.Vec3Tuple`; kept only for ``trajectories/runner.py``."""
 
 
 class YawMode(enum.Enum):
@@ -73,8 +76,8 @@ class Reference:
     """
 
     t_s: float
-    pos_m: Vec3
-    vel_m_s: Vec3
+    pos_m: Vec3Tuple
+    vel_m_s: Vec3Tuple
     yaw_rad: float
     yaw_rate_rad_s: float = 0.0
     lap: int = 0
@@ -166,7 +169,7 @@ class Segment(Protocol):
     @property
     def end_yaw_rad(self) -> float: ...
 
-    def at(self, tau_s: float) -> tuple[Vec3, Vec3, float, float]:
+    def at(self, tau_s: float) -> tuple[Vec3Tuple, Vec3Tuple, float, float]:
         """(pos, vel, yaw, yaw_rate) at local time ``tau_s``."""
         ...
 
@@ -175,8 +178,8 @@ class Segment(Protocol):
 class Move:
     """A straight move from rest to rest at a constant yaw, speed ramped within ``accel_m_s2``."""
 
-    start_m: Vec3
-    end_m: Vec3
+    start_m: Vec3Tuple
+    end_m: Vec3Tuple
     speed_m_s: float
     accel_m_s2: float
     yaw_rad: float
@@ -197,7 +200,7 @@ class Move:
     def end_yaw_rad(self) -> float:
         return self.yaw_rad
 
-    def at(self, tau_s: float) -> tuple[Vec3, Vec3, float, float]:
+    def at(self, tau_s: float) -> tuple[Vec3Tuple, Vec3Tuple, float, float]:
         length = self.length_m
         if length <= 0.0:
             return self.start_m, (0.0, 0.0, 0.0), self.yaw_rad, 0.0
@@ -216,7 +219,7 @@ class Turn:
     ``pi/2 * delta / duration`` in the middle.
     """
 
-    pos_m: Vec3
+    pos_m: Vec3Tuple
     from_yaw_rad: float
     to_yaw_rad: float
     turn_duration_s: float
@@ -233,7 +236,7 @@ class Turn:
     def end_yaw_rad(self) -> float:
         return self.to_yaw_rad
 
-    def at(self, tau_s: float) -> tuple[Vec3, Vec3, float, float]:
+    def at(self, tau_s: float) -> tuple[Vec3Tuple, Vec3Tuple, float, float]:
         d = self.to_yaw_rad - self.from_yaw_rad
         T = self.turn_duration_s
         if T <= 0.0 or d == 0.0:
@@ -327,7 +330,7 @@ def _check_join(name: str, a: Segment, b: Segment) -> None:
 
 
 def chain(
-    points: Sequence[Vec3],
+    points: Sequence[Vec3Tuple],
     yaws_rad: Sequence[float],
     speed_m_s: float,
     accel_m_s2: float,

@@ -5,7 +5,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from trajectories.base import Reference, Vec3, YawMode, trapezoid, trapezoid_duration_s, unwrap_next
+from flightkit.frames import Vec3Tuple
+from trajectories.base import Reference, YawMode, trapezoid, trapezoid_duration_s, unwrap_next
 
 __all__ = ["Circle"]
 
@@ -107,8 +108,8 @@ class Circle:
         dth = sgn * s / r
         th = self.start_angle_rad + dth
         c, si = math.cos(th), math.sin(th)
-        pos: Vec3 = (self.centre_m[0] + r * c, self.centre_m[1] + r * si, self.height_m)
-        vel: Vec3 = (-sgn * v * si, sgn * v * c, 0.0)
+        pos: Vec3Tuple = (self.centre_m[0] + r * c, self.centre_m[1] + r * si, self.height_m)
+        vel: Vec3Tuple = (-sgn * v * si, sgn * v * c, 0.0)
         if self.yaw_mode is YawMode.FIXED:
             yaw, rate = self._yaw0(), 0.0
         else:

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from trajectories.base import PiecewisePattern, Turn, Vec3
+from flightkit.frames import Vec3Tuple
+from trajectories.base import PiecewisePattern, Turn
 
 __all__ = ["Hold"]
 
@@ -10,7 +11,7 @@ __all__ = ["Hold"]
 class Hold(PiecewisePattern):
     """Hold ``pos_m`` (world ENU) at heading ``yaw_rad`` for ``duration_s`` seconds."""
 
-    def __init__(self, pos_m: Vec3, yaw_rad: float, duration_s: float) -> None:
+    def __init__(self, pos_m: Vec3Tuple, yaw_rad: float, duration_s: float) -> None:
         if not duration_s > 0.0:
             raise ValueError(f"hold: duration must be positive, got {duration_s} s")
         p = (float(pos_m[0]), float(pos_m[1]), float(pos_m[2]))

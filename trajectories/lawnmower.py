@@ -5,7 +5,8 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-from trajectories.base import PiecewisePattern, Reference, Vec3, YawMode, chain, heading_rad, unwrap_next
+from flightkit.frames import Vec3Tuple
+from trajectories.base import PiecewisePattern, Reference, YawMode, chain, heading_rad, unwrap_next
 
 __all__ = ["Lawnmower", "lawnmower_points"]
 
@@ -70,7 +71,7 @@ class Lawnmower(PiecewisePattern):
         if return_to_start and math.dist(pts2[-1], pts2[0]) > 1e-9:
             pts2.append(pts2[0])
         z = float(height_m)
-        points: list[Vec3] = [(x, y, z) for x, y in pts2]
+        points: list[Vec3Tuple] = [(x, y, z) for x, y in pts2]
         yaws: list[float] = []
         prev = 0.0
         for i in range(len(points) - 1):

@@ -5,11 +5,11 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
+from flightkit.frames import Vec3Tuple
 from trajectories.base import (
     PiecewisePattern,
     Reference,
     Segment,
-    Vec3,
     YawMode,
     chain,
     heading_rad,
@@ -89,7 +89,7 @@ class Rectangle(PiecewisePattern):
             yaw = unwrap_next(prev, yaw)
             yaws.append(yaw)
             prev = yaw
-        points: list[Vec3] = [(x, y, float(height_m)) for x, y in pts] + [
+        points: list[Vec3Tuple] = [(x, y, float(height_m)) for x, y in pts] + [
             (pts[0][0], pts[0][1], float(height_m))
         ]
         segs: list[Segment] = chain(points, yaws, speed_m_s, accel_m_s2, turn_s)

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from trajectories.base import Move, PiecewisePattern, Vec3
+from flightkit.frames import Vec3Tuple
+from trajectories.base import Move, PiecewisePattern
 
 __all__ = ["Land", "Takeoff"]
 
@@ -12,7 +13,7 @@ class Takeoff(PiecewisePattern):
 
     def __init__(
         self,
-        start_m: Vec3,
+        start_m: Vec3Tuple,
         height_m: float,
         climb_m_s: float = 0.3,
         accel_m_s2: float = 0.5,
@@ -39,7 +40,7 @@ class Land(PiecewisePattern):
 
     def __init__(
         self,
-        start_m: Vec3,
+        start_m: Vec3Tuple,
         descent_m_s: float = 0.3,
         floor_m: float = 0.0,
         push_m: float = 0.3,

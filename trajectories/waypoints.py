@@ -5,7 +5,8 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-from trajectories.base import PiecewisePattern, Turn, Vec3, YawMode, chain, heading_rad, unwrap_next
+from flightkit.frames import Vec3Tuple
+from trajectories.base import PiecewisePattern, Turn, YawMode, chain, heading_rad, unwrap_next
 
 __all__ = ["Line", "Waypoints"]
 
@@ -30,7 +31,7 @@ class Waypoints(PiecewisePattern):
         end_yaw_rad: float | None = None,
         name: str = "waypoints",
     ) -> None:
-        pts: list[Vec3] = [(float(p[0]), float(p[1]), float(p[2])) for p in points_m]
+        pts: list[Vec3Tuple] = [(float(p[0]), float(p[1]), float(p[2])) for p in points_m]
         if len(pts) < 2:
             raise ValueError(f"{name}: needs at least 2 points, got {len(pts)}")
         if not speed_m_s > 0.0 or not accel_m_s2 > 0.0:

@@ -33,7 +33,6 @@ PURE_MODULES = (
     "trajectories/hold.py",
     "trajectories/waypoints.py",
     "trajectories/takeoff.py",
-    "trajectories/land.py",
     "trajectories/patterns.py",
     "trajectories/controller.py",
     "trajectories/supervisor.py",
