@@ -39,7 +39,7 @@ PURE_MODULES = (
     "estimation/motion.py",
     "estimation/evaluation.py",
     "estimation/report/protocol.py",
-    "estimation/report/session.py",
+    "estimation/report/link_session.py",
 )
 
 
