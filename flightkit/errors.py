@@ -4,11 +4,13 @@
 
     FlightkitError
     ├── ConfigError            bad TOML: names file, key, value and the fix
+    │   └── PlanError          a pattern's parameters make no flight (names pattern, key, value, fix)
     ├── LinkError              anything between us and the autopilot
     │   ├── EndpointError      a connection string we cannot open (bad syntax, port in use)
     │   ├── LinkTimeout        nothing answered in time (heartbeat, COMMAND_ACK, state change)
     │   └── CommandRejected    the autopilot answered "no" (carries its reason and STATUSTEXT)
     ├── FrameError             a pose in a frame that cannot be placed in the world
+    ├── TransformError         an array that is not a 3-vector or rigid transform (also a ValueError)
     ├── SetpointError          a setpoint that is out of range or malformed
     ├── MocapError             mocap source failures
     │   └── MocapBodyMissing   the rigid body is not visible (carries the bodies that are)
@@ -17,10 +19,18 @@
     ├── DatasetError           an unreadable or incomplete dataset folder / recording
     ├── EstimationError        visual odometry and evaluation
     ├── SafetyAbort            the supervisor ended a flight (carries the fault)
+    ├── SimError               the simulated lab got impossible parameters or a call out of order
     └── ProtocolError          the serial/BLE pose-reporting protocol
 
 Every message says what is wrong, the value involved and what to do about it. Context is
 kept in public attributes so callers can react without parsing text.
+
+Library code raises only these (``tests/unit/test_errors_raised.py`` scans for bare
+``ValueError`` / ``RuntimeError``), value types' ``__post_init__`` included: a value built in
+Python with wrong fields raises the error of its domain (a :class:`ConfigError` names the class
+in angle brackets as its ``path``, e.g. ``"<SessionConfig>"``). Only :class:`TransformError`
+is also a ``ValueError``: it is the argument check of numeric functions, where numpy's
+convention is ``ValueError``.
 """
 
 from __future__ import annotations
@@ -39,9 +49,12 @@ __all__ = [
     "LinkTimeout",
     "MocapBodyMissing",
     "MocapError",
+    "PlanError",
     "ProtocolError",
     "SafetyAbort",
     "SetpointError",
+    "SimError",
+    "TransformError",
 ]
 
 
@@ -66,6 +79,23 @@ class ConfigError(FlightkitError):
         self.problem = problem
         self.fix = fix
         super().__init__(f"{path}: {key}: {problem}; {fix}")
+
+
+class PlanError(ConfigError):
+    """A pattern's (or plan's) parameters make no flight: a non-positive speed, corners that
+    coincide, laps that do not close.
+
+    Raised by the pattern classes of ``trajectories`` when built in Python; a plan file's
+    loader re-raises it as a :class:`ConfigError` naming the file and ``pattern.<key>``.
+
+    Attributes:
+        pattern: the pattern's name, e.g. ``"circle"`` (also in ``path``).
+        key, value, problem, fix: as :class:`ConfigError`.
+    """
+
+    def __init__(self, pattern: str, key: str, problem: str, fix: str, value: object = None) -> None:
+        self.pattern = pattern
+        super().__init__(pattern, key, problem, fix, value)
 
 
 class LinkError(FlightkitError):
@@ -125,6 +155,11 @@ class FrameError(FlightkitError):
         )
 
 
+class TransformError(FlightkitError, ValueError):
+    """An array is not the 3-vector, rotation or rigid transform a function needs (its shape,
+    or values that are not finite). Also a ``ValueError``, as numpy's own shape errors are."""
+
+
 class SetpointError(FlightkitError):
     """A setpoint is malformed or outside the configured limits."""
 
@@ -177,6 +212,11 @@ class SafetyAbort(FlightkitError):
     def __init__(self, reason: str, message: str) -> None:
         self.reason = reason
         super().__init__(message)
+
+
+class SimError(FlightkitError):
+    """The simulated lab (clock, dynamics, autopilot, synthetic sequences) was given parameters
+    it cannot simulate, or was used out of order (e.g. before it was started)."""
 
 
 class ProtocolError(FlightkitError):

@@ -21,6 +21,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
+from flightkit.errors import PlanError
 from flightkit.frames import Vec3Tuple
 
 __all__ = [
@@ -256,15 +257,20 @@ class PiecewisePattern:
     continuous.
 
     Raises:
-        ValueError: when the segments do not join, or a multi-lap pattern does not close.
+        PlanError: when the segments do not join, or a multi-lap pattern does not close.
     """
 
     def __init__(self, name: str, segments: Sequence[Segment], laps: int = 1) -> None:
         if laps < 1:
-            raise ValueError(f"{name}: laps must be at least 1, got {laps}")
+            raise PlanError(name, "laps", f"laps must be at least 1, got {laps}", "give laps >= 1", laps)
         segs = [s for s in segments if s.duration_s > 0.0]
         if not segs:
-            raise ValueError(f"{name}: the pattern has no motion (all segments are empty)")
+            raise PlanError(
+                name,
+                "segments",
+                "the pattern has no motion (all segments are empty)",
+                "give it a size, a speed or a duration",
+            )
         self._name = name
         self._laps = int(laps)
         self._segments = segs
@@ -284,9 +290,13 @@ class PiecewisePattern:
             gap = math.dist(first_pos, last_pos)
             turns = self._lap_yaw_delta / (2.0 * math.pi)
             if gap > 1e-6 or abs(turns - round(turns)) > 1e-6:
-                raise ValueError(
-                    f"{name}: a lap ends {gap:.3f} m and {math.degrees(self._lap_yaw_delta):.1f} deg "
-                    "away from where it starts, so it cannot be repeated; use laps = 1"
+                raise PlanError(
+                    name,
+                    "laps",
+                    f"a lap ends {gap:.3f} m and {math.degrees(self._lap_yaw_delta):.1f} deg "
+                    f"away from where it starts, so it cannot be repeated {laps} times",
+                    "use laps = 1",
+                    laps,
                 )
 
     @property
@@ -326,7 +336,12 @@ def _check_join(name: str, a: Segment, b: Segment) -> None:
     pa, _, ya, _ = a.at(a.duration_s)
     pb, _, yb, _ = b.at(0.0)
     if math.dist(pa, pb) > 1e-6 or abs(ya - yb) > 1e-6:
-        raise ValueError(f"{name}: segments do not join at {pa} / {pb} (internal error)")
+        raise PlanError(
+            name,
+            "segments",
+            f"segments do not join at {pa} / {pb} (internal error)",
+            "report this as a bug in the pattern",
+        )
 
 
 def chain(

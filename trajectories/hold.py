@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from flightkit.errors import PlanError
 from flightkit.frames import Vec3Tuple
 from trajectories.base import PiecewisePattern, Turn
 
@@ -13,7 +14,13 @@ class Hold(PiecewisePattern):
 
     def __init__(self, pos_m: Vec3Tuple, yaw_rad: float, duration_s: float) -> None:
         if not duration_s > 0.0:
-            raise ValueError(f"hold: duration must be positive, got {duration_s} s")
+            raise PlanError(
+                "hold",
+                "duration_s",
+                f"duration must be positive, got {duration_s} s",
+                "hold for a duration > 0",
+                duration_s,
+            )
         p = (float(pos_m[0]), float(pos_m[1]), float(pos_m[2]))
         self.pos_m = p
         self.yaw_rad = float(yaw_rad)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
+from flightkit.errors import PlanError
 from flightkit.frames import Vec3Tuple
 from trajectories.base import PiecewisePattern, Reference, YawMode, chain, heading_rad, unwrap_next
 
@@ -58,15 +59,45 @@ class Lawnmower(PiecewisePattern):
         return_to_start: bool = True,
     ) -> None:
         if not spacing_m > 0.0:
-            raise ValueError(f"lawnmower: lane spacing must be positive, got {spacing_m} m")
+            raise PlanError(
+                "lawnmower",
+                "spacing_m",
+                f"lane spacing must be positive, got {spacing_m} m",
+                "give a spacing > 0",
+                spacing_m,
+            )
         if size_m[0] <= 0.0 or size_m[1] < 0.0:
-            raise ValueError(f"lawnmower: size must be positive, got {tuple(size_m)}")
+            raise PlanError(
+                "lawnmower",
+                "size_m",
+                f"size must be positive, got {tuple(size_m)} m",
+                "give a length > 0 and a width >= 0",
+                tuple(size_m),
+            )
         if yaw_mode not in (YawMode.TRAVEL, YawMode.FIXED):
-            raise ValueError(f"lawnmower: yaw_mode must be travel or fixed, got {yaw_mode.value}")
+            raise PlanError(
+                "lawnmower",
+                "yaw_mode",
+                f"{yaw_mode.value!r} is not allowed here",
+                "use travel or fixed",
+                yaw_mode.value,
+            )
         if not speed_m_s > 0.0 or not accel_m_s2 > 0.0:
-            raise ValueError(f"lawnmower: speed ({speed_m_s}) and accel ({accel_m_s2}) must be positive")
+            raise PlanError(
+                "lawnmower",
+                "speed_m_s" if not speed_m_s > 0.0 else "accel_m_s2",
+                f"speed ({speed_m_s} m/s) and accel ({accel_m_s2} m/s^2) must be positive",
+                "give both > 0",
+                speed_m_s if not speed_m_s > 0.0 else accel_m_s2,
+            )
         if laps > 1 and not return_to_start:
-            raise ValueError("lawnmower: several laps need return_to_start = true")
+            raise PlanError(
+                "lawnmower",
+                "laps",
+                f"{laps} laps need return_to_start = true",
+                "set return_to_start = true or laps = 1",
+                laps,
+            )
         pts2 = lawnmower_points(origin_m, size_m, spacing_m, lane_dir_rad)
         if return_to_start and math.dist(pts2[-1], pts2[0]) > 1e-9:
             pts2.append(pts2[0])

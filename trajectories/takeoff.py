@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from flightkit.errors import PlanError
 from flightkit.frames import Vec3Tuple
 from trajectories.base import Move, PiecewisePattern
 
@@ -20,12 +21,22 @@ class Takeoff(PiecewisePattern):
         yaw_rad: float = 0.0,
     ) -> None:
         if not climb_m_s > 0.0:
-            raise ValueError(f"takeoff: climb rate must be positive, got {climb_m_s} m/s")
+            raise PlanError(
+                "takeoff",
+                "climb_m_s",
+                f"climb rate must be positive, got {climb_m_s} m/s",
+                "give a climb rate > 0",
+                climb_m_s,
+            )
         top = (float(start_m[0]), float(start_m[1]), float(height_m))
         start = (float(start_m[0]), float(start_m[1]), float(start_m[2]))
         if top[2] <= start[2]:
-            raise ValueError(
-                f"takeoff: target height {height_m} m is not above the start height {start[2]:.2f} m"
+            raise PlanError(
+                "takeoff",
+                "height_m",
+                f"target height {height_m} m is not above the start height {start[2]:.2f} m",
+                "take off to a height above the vehicle",
+                height_m,
             )
         self.height_m = float(height_m)
         super().__init__("takeoff", [Move(start, top, climb_m_s, accel_m_s2, float(yaw_rad))], 1)
@@ -48,7 +59,13 @@ class Land(PiecewisePattern):
         yaw_rad: float = 0.0,
     ) -> None:
         if not descent_m_s > 0.0:
-            raise ValueError(f"land: descent rate must be positive, got {descent_m_s} m/s")
+            raise PlanError(
+                "land",
+                "descent_m_s",
+                f"descent rate must be positive, got {descent_m_s} m/s",
+                "give a descent rate > 0",
+                descent_m_s,
+            )
         start = (float(start_m[0]), float(start_m[1]), float(start_m[2]))
         bottom = (start[0], start[1], min(float(floor_m), start[2]) - float(push_m))
         super().__init__("land", [Move(start, bottom, descent_m_s, accel_m_s2, float(yaw_rad))], 1)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
+from flightkit.errors import PlanError
 from flightkit.frames import Vec3Tuple
 from trajectories.base import PiecewisePattern, Turn, YawMode, chain, heading_rad, unwrap_next
 
@@ -33,11 +34,29 @@ class Waypoints(PiecewisePattern):
     ) -> None:
         pts: list[Vec3Tuple] = [(float(p[0]), float(p[1]), float(p[2])) for p in points_m]
         if len(pts) < 2:
-            raise ValueError(f"{name}: needs at least 2 points, got {len(pts)}")
+            raise PlanError(
+                name,
+                "points_m",
+                f"needs at least 2 points, got {len(pts)}",
+                "give a start and an end point",
+                len(pts),
+            )
         if not speed_m_s > 0.0 or not accel_m_s2 > 0.0:
-            raise ValueError(f"{name}: speed ({speed_m_s}) and accel ({accel_m_s2}) must be positive")
+            raise PlanError(
+                name,
+                "speed_m_s" if not speed_m_s > 0.0 else "accel_m_s2",
+                f"speed ({speed_m_s} m/s) and accel ({accel_m_s2} m/s^2) must be positive",
+                "give both > 0",
+                speed_m_s if not speed_m_s > 0.0 else accel_m_s2,
+            )
         if yaw_mode not in (YawMode.FIXED, YawMode.TRAVEL):
-            raise ValueError(f"{name}: yaw_mode must be travel or fixed, got {yaw_mode.value}")
+            raise PlanError(
+                name,
+                "yaw_mode",
+                f"{yaw_mode.value!r} is not allowed here",
+                "use travel or fixed",
+                yaw_mode.value,
+            )
         # drop repeated points
         dedup = [pts[0]] + [p for a, p in zip(pts, pts[1:], strict=False) if math.dist(a, p) > 1e-9]
         yaws: list[float] = []

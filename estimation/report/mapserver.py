@@ -88,9 +88,12 @@ def parse_orders(text: str, source: str = "<orders>") -> list[OrderLine]:
         if not line:
             continue
         parts = line.split()
+        if not 3 <= len(parts) <= 5:
+            raise ProtocolError(
+                f"{source}:{n}: cannot read order {raw.strip()!r} ({len(parts)} fields); "
+                "write ROBOT X Y [Z] [HEADING_DEG]",
+            )
         try:
-            if not 3 <= len(parts) <= 5:
-                raise ValueError("expected ROBOT X Y [Z] [HEADING_DEG]")
             nums = [float(v) for v in parts[1:]]
             z = nums[2] if len(nums) > 2 else math.nan
             heading = math.radians(nums[3]) if len(nums) > 3 else math.nan
