@@ -4,7 +4,7 @@
 
     FlightkitError
     ├── ConfigError            bad TOML: names file, key, value and the fix
-    │   └── PlanError          a pattern's parameters make no flight (names pattern, key, value, fix)
+    │   └── PlanError          a pattern or plan that cannot be flown as given (parameters, geofence)
     ├── LinkError              anything between us and the autopilot
     │   ├── EndpointError      a connection string we cannot open (bad syntax, port in use)
     │   ├── LinkTimeout        nothing answered in time (heartbeat, COMMAND_ACK, state change)
@@ -82,20 +82,26 @@ class ConfigError(FlightkitError):
 
 
 class PlanError(ConfigError):
-    """A pattern's (or plan's) parameters make no flight: a non-positive speed, corners that
-    coincide, laps that do not close.
+    """A pattern or plan cannot be flown as given: its parameters make no flight (a
+    non-positive speed, corners that coincide, laps that do not close) or it leaves the
+    geofence.
 
-    Raised by the pattern classes of ``trajectories`` when built in Python; a plan file's
-    loader re-raises it as a :class:`ConfigError` naming the file and ``pattern.<key>``.
+    Raised by the pattern classes of ``trajectories`` when built in Python and by the runner;
+    a plan file's loader re-raises a pattern's as a :class:`ConfigError` naming the file and
+    ``pattern.<key>``. ``PlanError("message")`` alone is fine where no single key is at fault.
 
     Attributes:
-        pattern: the pattern's name, e.g. ``"circle"`` (also in ``path``).
-        key, value, problem, fix: as :class:`ConfigError`.
+        pattern: the pattern's name, e.g. ``"circle"`` ("" when not known; ``path`` is then
+            ``"<plan>"``).
+        key, value, problem, fix: as :class:`ConfigError` (key "" when no single key is at fault).
     """
 
-    def __init__(self, pattern: str, key: str, problem: str, fix: str, value: object = None) -> None:
+    def __init__(self, problem: str, fix: str = "", *, pattern: str = "", key: str = "", value: object = None) -> None:
         self.pattern = pattern
-        super().__init__(pattern, key, problem, fix, value)
+        super().__init__(pattern or "<plan>", key, problem, fix, value)
+        where = ": ".join(part for part in (pattern, key) if part)
+        text = f"{where}: {problem}" if where else problem
+        self.args = (f"{text}; {fix}" if fix else text,)
 
 
 class LinkError(FlightkitError):

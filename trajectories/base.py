@@ -262,14 +262,20 @@ class PiecewisePattern:
 
     def __init__(self, name: str, segments: Sequence[Segment], laps: int = 1) -> None:
         if laps < 1:
-            raise PlanError(name, "laps", f"laps must be at least 1, got {laps}", "give laps >= 1", laps)
+            raise PlanError(
+                f"laps must be at least 1, got {laps}",
+                "give laps >= 1",
+                pattern=name,
+                key="laps",
+                value=laps,
+            )
         segs = [s for s in segments if s.duration_s > 0.0]
         if not segs:
             raise PlanError(
-                name,
-                "segments",
                 "the pattern has no motion (all segments are empty)",
                 "give it a size, a speed or a duration",
+                pattern=name,
+                key="segments",
             )
         self._name = name
         self._laps = int(laps)
@@ -291,12 +297,12 @@ class PiecewisePattern:
             turns = self._lap_yaw_delta / (2.0 * math.pi)
             if gap > 1e-6 or abs(turns - round(turns)) > 1e-6:
                 raise PlanError(
-                    name,
-                    "laps",
                     f"a lap ends {gap:.3f} m and {math.degrees(self._lap_yaw_delta):.1f} deg "
                     f"away from where it starts, so it cannot be repeated {laps} times",
                     "use laps = 1",
-                    laps,
+                    pattern=name,
+                    key="laps",
+                    value=laps,
                 )
 
     @property
@@ -337,10 +343,10 @@ def _check_join(name: str, a: Segment, b: Segment) -> None:
     pb, _, yb, _ = b.at(0.0)
     if math.dist(pa, pb) > 1e-6 or abs(ya - yb) > 1e-6:
         raise PlanError(
-            name,
-            "segments",
             f"segments do not join at {pa} / {pb} (internal error)",
             "report this as a bug in the pattern",
+            pattern=name,
+            key="segments",
         )
 
 

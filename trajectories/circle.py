@@ -49,44 +49,50 @@ class Circle:
     def __post_init__(self) -> None:
         if not self.radius_m > 0.0:
             raise PlanError(
-                "circle",
-                "radius_m",
                 f"radius must be positive, got {self.radius_m} m",
                 "give a radius > 0",
-                self.radius_m,
+                pattern="circle",
+                key="radius_m",
+                value=self.radius_m,
             )
         if (self.period_s is None) == (self.speed_m_s is None):
             raise PlanError(
-                "circle",
-                "period_s",
                 f"period_s = {self.period_s} and speed_m_s = {self.speed_m_s}",
                 "give the circle either period_s or speed_m_s, not both or neither",
+                pattern="circle",
+                key="period_s",
             )
         if self.period_s is not None and not self.period_s > 0.0:
             raise PlanError(
-                "circle",
-                "period_s",
                 f"period must be positive, got {self.period_s} s",
                 "give a period > 0",
-                self.period_s,
+                pattern="circle",
+                key="period_s",
+                value=self.period_s,
             )
         if self.speed_m_s is not None and not self.speed_m_s > 0.0:
             raise PlanError(
-                "circle",
-                "speed_m_s",
                 f"speed must be positive, got {self.speed_m_s} m/s",
                 "give a speed > 0",
-                self.speed_m_s,
+                pattern="circle",
+                key="speed_m_s",
+                value=self.speed_m_s,
             )
         if self.laps < 1:
-            raise PlanError("circle", "laps", f"laps must be at least 1, got {self.laps}", "give laps >= 1", self.laps)
+            raise PlanError(
+                f"laps must be at least 1, got {self.laps}",
+                "give laps >= 1",
+                pattern="circle",
+                key="laps",
+                value=self.laps,
+            )
         if not self.accel_m_s2 > 0.0:
             raise PlanError(
-                "circle",
-                "accel_m_s2",
                 f"must be positive, got {self.accel_m_s2} m/s^2",
                 "give an acceleration > 0",
-                self.accel_m_s2,
+                pattern="circle",
+                key="accel_m_s2",
+                value=self.accel_m_s2,
             )
 
     @property

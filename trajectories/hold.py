@@ -15,11 +15,11 @@ class Hold(PiecewisePattern):
     def __init__(self, pos_m: Vec3Tuple, yaw_rad: float, duration_s: float) -> None:
         if not duration_s > 0.0:
             raise PlanError(
-                "hold",
-                "duration_s",
                 f"duration must be positive, got {duration_s} s",
                 "hold for a duration > 0",
-                duration_s,
+                pattern="hold",
+                key="duration_s",
+                value=duration_s,
             )
         p = (float(pos_m[0]), float(pos_m[1]), float(pos_m[2]))
         self.pos_m = p

@@ -60,43 +60,43 @@ class Lawnmower(PiecewisePattern):
     ) -> None:
         if not spacing_m > 0.0:
             raise PlanError(
-                "lawnmower",
-                "spacing_m",
                 f"lane spacing must be positive, got {spacing_m} m",
                 "give a spacing > 0",
-                spacing_m,
+                pattern="lawnmower",
+                key="spacing_m",
+                value=spacing_m,
             )
         if size_m[0] <= 0.0 or size_m[1] < 0.0:
             raise PlanError(
-                "lawnmower",
-                "size_m",
                 f"size must be positive, got {tuple(size_m)} m",
                 "give a length > 0 and a width >= 0",
-                tuple(size_m),
+                pattern="lawnmower",
+                key="size_m",
+                value=tuple(size_m),
             )
         if yaw_mode not in (YawMode.TRAVEL, YawMode.FIXED):
             raise PlanError(
-                "lawnmower",
-                "yaw_mode",
                 f"{yaw_mode.value!r} is not allowed here",
                 "use travel or fixed",
-                yaw_mode.value,
+                pattern="lawnmower",
+                key="yaw_mode",
+                value=yaw_mode.value,
             )
         if not speed_m_s > 0.0 or not accel_m_s2 > 0.0:
             raise PlanError(
-                "lawnmower",
-                "speed_m_s" if not speed_m_s > 0.0 else "accel_m_s2",
                 f"speed ({speed_m_s} m/s) and accel ({accel_m_s2} m/s^2) must be positive",
                 "give both > 0",
-                speed_m_s if not speed_m_s > 0.0 else accel_m_s2,
+                pattern="lawnmower",
+                key="speed_m_s" if not speed_m_s > 0.0 else "accel_m_s2",
+                value=speed_m_s if not speed_m_s > 0.0 else accel_m_s2,
             )
         if laps > 1 and not return_to_start:
             raise PlanError(
-                "lawnmower",
-                "laps",
                 f"{laps} laps need return_to_start = true",
                 "set return_to_start = true or laps = 1",
-                laps,
+                pattern="lawnmower",
+                key="laps",
+                value=laps,
             )
         pts2 = lawnmower_points(origin_m, size_m, spacing_m, lane_dir_rad)
         if return_to_start and math.dist(pts2[-1], pts2[0]) > 1e-9:

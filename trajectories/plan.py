@@ -339,7 +339,8 @@ class Plan:
         try:
             return self.pattern.build()
         except PlanError as exc:
-            raise ConfigError(self.source_path, f"pattern.{exc.key}", exc.problem, exc.fix, exc.value) from exc
+            key = f"pattern.{exc.key}" if exc.key else "pattern"
+            raise ConfigError(self.source_path, key, exc.problem, exc.fix, exc.value) from exc
 
     def with_lab_defaults(self, lab: LabConfig) -> Plan:
         """This plan with the lab's own ``[control]`` and ``[safety]`` tables as defaults.

@@ -63,31 +63,31 @@ class Rectangle(PiecewisePattern):
         pts = [(float(p[0]), float(p[1])) for p in corners_m]
         if len(pts) < 3:
             raise PlanError(
-                name,
-                "corners_m",
                 f"needs at least 3 corners, got {len(pts)}",
                 "give 3 or more corners",
-                len(pts),
+                pattern=name,
+                key="corners_m",
+                value=len(pts),
             )
         if not speed_m_s > 0.0 or not accel_m_s2 > 0.0 or turn_s < 0.0:
             bad = "speed_m_s" if not speed_m_s > 0.0 else "accel_m_s2" if not accel_m_s2 > 0.0 else "turn_s"
             raise PlanError(
-                name,
-                bad,
                 f"speed_m_s ({speed_m_s}) and accel_m_s2 ({accel_m_s2}) must be positive, "
                 f"turn_s ({turn_s}) not negative",
                 f"fix {bad}",
-                {"speed_m_s": speed_m_s, "accel_m_s2": accel_m_s2, "turn_s": turn_s}[bad],
+                pattern=name,
+                key=bad,
+                value={"speed_m_s": speed_m_s, "accel_m_s2": accel_m_s2, "turn_s": turn_s}[bad],
             )
         n = len(pts)
         for i in range(n):
             if math.dist(pts[i], pts[(i + 1) % n]) < 1e-6:
                 raise PlanError(
-                    name,
-                    "corners_m",
                     f"corners {i} and {(i + 1) % n} coincide at {pts[i]}",
                     "remove the repeated corner",
-                    pts[i],
+                    pattern=name,
+                    key="corners_m",
+                    value=pts[i],
                 )
         area2 = sum(pts[i][0] * pts[(i + 1) % n][1] - pts[(i + 1) % n][0] * pts[i][1] for i in range(n))
         ccw = area2 > 0.0

@@ -22,21 +22,21 @@ class Takeoff(PiecewisePattern):
     ) -> None:
         if not climb_m_s > 0.0:
             raise PlanError(
-                "takeoff",
-                "climb_m_s",
                 f"climb rate must be positive, got {climb_m_s} m/s",
                 "give a climb rate > 0",
-                climb_m_s,
+                pattern="takeoff",
+                key="climb_m_s",
+                value=climb_m_s,
             )
         top = (float(start_m[0]), float(start_m[1]), float(height_m))
         start = (float(start_m[0]), float(start_m[1]), float(start_m[2]))
         if top[2] <= start[2]:
             raise PlanError(
-                "takeoff",
-                "height_m",
                 f"target height {height_m} m is not above the start height {start[2]:.2f} m",
                 "take off to a height above the vehicle",
-                height_m,
+                pattern="takeoff",
+                key="height_m",
+                value=height_m,
             )
         self.height_m = float(height_m)
         super().__init__("takeoff", [Move(start, top, climb_m_s, accel_m_s2, float(yaw_rad))], 1)
@@ -60,11 +60,11 @@ class Land(PiecewisePattern):
     ) -> None:
         if not descent_m_s > 0.0:
             raise PlanError(
-                "land",
-                "descent_m_s",
                 f"descent rate must be positive, got {descent_m_s} m/s",
                 "give a descent rate > 0",
-                descent_m_s,
+                pattern="land",
+                key="descent_m_s",
+                value=descent_m_s,
             )
         start = (float(start_m[0]), float(start_m[1]), float(start_m[2]))
         bottom = (start[0], start[1], min(float(floor_m), start[2]) - float(push_m))

@@ -35,27 +35,27 @@ class Waypoints(PiecewisePattern):
         pts: list[Vec3Tuple] = [(float(p[0]), float(p[1]), float(p[2])) for p in points_m]
         if len(pts) < 2:
             raise PlanError(
-                name,
-                "points_m",
                 f"needs at least 2 points, got {len(pts)}",
                 "give a start and an end point",
-                len(pts),
+                pattern=name,
+                key="points_m",
+                value=len(pts),
             )
         if not speed_m_s > 0.0 or not accel_m_s2 > 0.0:
             raise PlanError(
-                name,
-                "speed_m_s" if not speed_m_s > 0.0 else "accel_m_s2",
                 f"speed ({speed_m_s} m/s) and accel ({accel_m_s2} m/s^2) must be positive",
                 "give both > 0",
-                speed_m_s if not speed_m_s > 0.0 else accel_m_s2,
+                pattern=name,
+                key="speed_m_s" if not speed_m_s > 0.0 else "accel_m_s2",
+                value=speed_m_s if not speed_m_s > 0.0 else accel_m_s2,
             )
         if yaw_mode not in (YawMode.FIXED, YawMode.TRAVEL):
             raise PlanError(
-                name,
-                "yaw_mode",
                 f"{yaw_mode.value!r} is not allowed here",
                 "use travel or fixed",
-                yaw_mode.value,
+                pattern=name,
+                key="yaw_mode",
+                value=yaw_mode.value,
             )
         # drop repeated points
         dedup = [pts[0]] + [p for a, p in zip(pts, pts[1:], strict=False) if math.dist(a, p) > 1e-9]
