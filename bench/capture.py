@@ -81,7 +81,7 @@ class McapPackageWriter:
 
 def recorder_role(args: argparse.Namespace) -> int:
     import capture.recorder
-    from capture.session import BusRecorder
+    from capture.bus_recorder import BusRecorder
 
     if args.writer == "mcap":
         capture.recorder.FastMcapWriter = McapPackageWriter  # type: ignore[misc,assignment]

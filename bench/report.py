@@ -18,10 +18,10 @@ import tempfile
 import threading
 import time
 
+from estimation.report.link_session import PoseReceived, RobotEndpoint, SegmentReceived, ServerEndpoint
 from estimation.report.messages import PoseUpdate, Segment, encode_pose
 from estimation.report.protocol import Frame, encode_frame
 from estimation.report.relay import Faults, PtyRelay
-from estimation.report.session import PoseReceived, RobotEndpoint, SegmentReceived, ServerEndpoint
 from estimation.report.transport import SerialTransport
 
 

@@ -165,18 +165,25 @@ def umeyama(
 ) -> tuple[FloatArray, FloatArray, float]:
     """Least-squares ``(R, t, s)`` with ``dst ~ s R src + t`` (Umeyama 1991), points (N, 3).
 
+    The one implementation in flightkit: the trajectory alignment here and the VO's rigid fits
+    (:mod:`estimation.motion`, which re-exports it) use it. R is a proper rotation (det +1),
+    s = 1.0 without ``with_scale``.
+
     Raises:
-        EstimationError: fewer than 3 points or a degenerate (collinear) point set.
+        EstimationError: fewer than 3 points, mismatched shapes or a degenerate (collinear) point set.
     """
     x = np.asarray(src, dtype=np.float64)
     y = np.asarray(dst, dtype=np.float64)
     if x.shape != y.shape or x.ndim != 2 or x.shape[1] != 3:
         raise EstimationError(
-            f"umeyama needs two (N, 3) point sets of equal shape, got {x.shape} and {y.shape}"
+            f"umeyama needs two (N, 3) point sets of equal shape with N >= 3, got {x.shape} and {y.shape}; "
+            "pass matched points, one row per pair"
         )
     n = x.shape[0]
     if n < 3:
-        raise EstimationError(f"alignment needs at least 3 matched poses, got {n}; use alignment none")
+        raise EstimationError(
+            f"umeyama needs at least 3 point pairs (N >= 3), got {n}; align on more matched poses or use alignment none"
+        )
     mean_x = x.mean(axis=0)
     mean_y = y.mean(axis=0)
     xc = x - mean_x

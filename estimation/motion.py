@@ -10,7 +10,7 @@ Inputs are numpy arrays: 3D points (N, 3) metres, pixels (N, 2), the intrinsic m
 ``K`` (3, 3). Pure numpy except the PnP and essential-matrix solvers, which are OpenCV's.
 
 Functions:
-    umeyama(src, dst, with_scale) -> (R, t, s)        least squares, closed form (SVD)
+    umeyama(src, dst, with_scale) -> (R, t, s)        least squares, closed form (SVD); from estimation.evaluation
     ransac_rigid(src, dst, threshold_m, ...) -> Motion vectorised 3-point RANSAC + refit
     rigidity_inliers(P, Q, tol_m) -> mask              max-clique of distance-preserving pairs
     pnp(points_ref, pts_px, K, method, ...) -> Motion  iterative / EPnP / SQPnP with RANSAC
@@ -33,6 +33,7 @@ import numpy as np
 import numpy.typing as npt
 
 from estimation import _kernels
+from estimation.evaluation import umeyama
 from flightkit.errors import EstimationError
 
 __all__ = [
@@ -143,40 +144,6 @@ def rotation_angle_rad(R: F64) -> float:
 
 def _failed(n: int) -> Motion:
     return Motion(np.eye(4), np.zeros(n, dtype=bool), False)
-
-
-def umeyama(src: npt.ArrayLike, dst: npt.ArrayLike, with_scale: bool = False) -> tuple[F64, F64, float]:
-    """Least-squares ``dst ~ s * R @ src + t`` (Kabsch when ``with_scale`` is False, Umeyama 1991).
-
-    Args:
-        src, dst: (N, 3) corresponding points, N >= 3 and not all collinear.
-        with_scale: also estimate the similarity scale s.
-
-    Returns:
-        ``(R, t, s)``; R is a proper rotation (det +1), s = 1.0 without scale.
-
-    Raises:
-        EstimationError: fewer than 3 points or mismatched shapes.
-    """
-    P = np.asarray(src, dtype=np.float64)
-    Q = np.asarray(dst, dtype=np.float64)
-    if P.shape != Q.shape or P.ndim != 2 or P.shape[1] != 3 or P.shape[0] < 3:
-        raise EstimationError(f"umeyama needs two (N, 3) arrays with N >= 3, got {P.shape} and {Q.shape}")
-    mp, mq = P.mean(axis=0), Q.mean(axis=0)
-    Pc, Qc = P - mp, Q - mq
-    H = Pc.T @ Qc / len(P)
-    U, S, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
-    D = np.array([1.0, 1.0, d])
-    R = (Vt.T * D) @ U.T
-    s = 1.0
-    if with_scale:
-        var_p = float(np.mean(np.sum(Pc * Pc, axis=1)))
-        if var_p <= 0.0:
-            raise EstimationError("umeyama with scale needs source points that are not all identical")
-        s = float(np.sum(S * D) / var_p)
-    t = mq - s * R @ mp
-    return R, t, s
 
 
 def _batch_kabsch(P: F64, Q: F64) -> tuple[F64, F64]:
@@ -349,13 +316,13 @@ def rigid_from_prior(
 
 
 def _kabsch(P: F64, Q: F64) -> tuple[F64, F64]:
-    """:func:`umeyama` without scale, bit for bit, minus its checks and generic calls (~2x
-    cheaper on 200 points): the same centring, SVD and products; the reflection test by the
-    sign of a spelled-out 3x3 determinant (the sign of +-1 cannot differ)."""
+    """:func:`umeyama` without scale (equal to ~1e-12), minus its checks and generic calls (~2x
+    cheaper on 200 points): centring, SVD and products; the reflection test by the sign of a
+    spelled-out 3x3 determinant (the sign of +-1 cannot differ)."""
     mp, mq = P.mean(axis=0), Q.mean(axis=0)
     H = (P - mp).T @ (Q - mq) / len(P)
     U, _, Vt = np.linalg.svd(H)
-    V = Vt.T.copy()  # the layout of umeyama's ``Vt.T * D``, so the products round the same
+    V = Vt.T.copy()
     M = V @ U.T
     det = (
         M[0, 0] * (M[1, 1] * M[2, 2] - M[1, 2] * M[2, 1])

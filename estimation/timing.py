@@ -1,31 +1,19 @@
-"""Per-stage timing of a VO pipeline: a timer to fill per frame, and the table it summarises into.
+"""Per-stage timing of a VO pipeline: the table its per-frame stage times summarise into.
 
 API::
 
-    timer = StageTimer()                       # one per run
-    for frame in seq.frames():
-        with timer.frame():                    # "total" = the whole frame
-            with timer.stage("features"):
-                ...
-            with timer.stage("3d"):
-                ...
-            with timer.stage("motion"):
-                ...
-    table = timer.table()                      # TimingTable
+    table = TimingTable.from_stage_ms(result.stage_ms)   # {"features": (N,), ..., "total": (N,)} ms
     table.rows                                 # [StageTiming(name, mean_ms, median_ms, p95_ms, max_ms, count, share)]
     table.to_dict(); table.format()            # JSON-friendly / plain-text table
 
 Stage names are free; the usual ones are :data:`STAGE_FEATURES`, :data:`STAGE_3D`,
-:data:`STAGE_MOTION`; ``total`` is the time of the ``frame()`` block (so stages that are not
-timed show up as ``total`` minus the sum of the stages). Times come from
-``time.perf_counter_ns`` (monotonic). Not thread-safe: one timer per pipeline thread.
+:data:`STAGE_MOTION`; ``total`` is the time of the whole frame (so stages that are not
+timed show up as ``total`` minus the sum of the stages). The pipeline measures the times.
 """
 
 from __future__ import annotations
 
-import time
-from collections.abc import Iterator, Mapping
-from contextlib import contextmanager
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -38,7 +26,6 @@ __all__ = [
     "STAGE_FEATURES",
     "STAGE_MOTION",
     "STAGE_TOTAL",
-    "StageTimer",
     "StageTiming",
     "TimingTable",
 ]
@@ -68,7 +55,7 @@ class StageTiming:
 
 @dataclass(frozen=True, slots=True)
 class TimingTable:
-    """The summary of a :class:`StageTimer`: one row per stage (in first-seen order), total last."""
+    """The summary of per-frame stage times: one row per stage (in first-seen order), total last."""
 
     rows: tuple[StageTiming, ...]
     frames: int
@@ -121,70 +108,6 @@ class TimingTable:
                 f"{r.count:>8d}{r.share * 100:>7.0f}%"
             )
         return "\n".join(lines)
-
-
-class StageTimer:
-    """Accumulates wall time per named stage and per frame (see the module docstring)."""
-
-    def __init__(self) -> None:
-        self._samples: dict[str, list[int]] = {}
-        self._frames = 0
-        self._in_frame = False
-        self._frame_marks: dict[str, int] = {}
-
-    @contextmanager
-    def stage(self, name: str) -> Iterator[None]:
-        """Time the block as stage ``name`` (a stage may run several times per frame; they add up
-        per frame when inside :meth:`frame`)."""
-        if name == STAGE_TOTAL:
-            raise EstimationError(f"stage name {STAGE_TOTAL!r} is reserved for frame(); pick another")
-        t0 = time.perf_counter_ns()
-        try:
-            yield
-        finally:
-            self.add(name, time.perf_counter_ns() - t0)
-
-    @contextmanager
-    def frame(self) -> Iterator[None]:
-        """Time one frame (the ``total`` row)."""
-        if self._in_frame:
-            raise EstimationError("StageTimer.frame() blocks cannot nest")
-        self._in_frame = True
-        self._frame_marks = {k: len(v) for k, v in self._samples.items()}
-        t0 = time.perf_counter_ns()
-        try:
-            yield
-        finally:
-            self._in_frame = False
-            self._merge_frame_samples()
-            self._samples.setdefault(STAGE_TOTAL, []).append(time.perf_counter_ns() - t0)
-            self._frames += 1
-
-    def _merge_frame_samples(self) -> None:
-        # Several runs of one stage within a frame count as one sample (their sum).
-        for name, values in self._samples.items():
-            start = self._frame_marks.get(name, 0)
-            if len(values) - start > 1:
-                values[start:] = [sum(values[start:])]
-
-    def add(self, name: str, duration_ns: int) -> None:
-        """Record a duration measured elsewhere (e.g. on a worker thread)."""
-        self._samples.setdefault(name, []).append(int(duration_ns))
-
-    @property
-    def frames(self) -> int:
-        return self._frames
-
-    def table(self) -> TimingTable:
-        """Summarise everything recorded so far.
-
-        Raises:
-            EstimationError: nothing was timed.
-        """
-        if not self._samples:
-            raise EstimationError("no timings recorded; wrap the work in timer.frame()/timer.stage()")
-        stage_ms = {k: np.asarray(v, dtype=np.float64) / 1e6 for k, v in self._samples.items()}
-        return TimingTable.from_stage_ms(stage_ms, self._frames)
 
 
 def _table_from_stage_ms(stage_ms: Mapping[str, npt.ArrayLike], frames: int | None = None) -> TimingTable:

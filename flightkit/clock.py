@@ -24,6 +24,8 @@ import threading
 import time
 from typing import Protocol, runtime_checkable
 
+from flightkit.errors import SimError
+
 __all__ = [
     "LATE_SLEEPER_LEAD_S",
     "LATE_SLEEPER_PATIENCE_WALL_S",
@@ -134,11 +136,18 @@ class SimClock:
         late_lead_s: float = LATE_SLEEPER_LEAD_S,
     ) -> None:
         if not speed > 0.0 or speed == float("inf"):
-            raise ValueError(f"SimClock speed must be a positive finite number, got {speed}")
+            raise SimError(
+                f"SimClock speed must be a positive finite number, got {speed}; use e.g. 1.0 (real time) or 10.0",
+            )
         if max_wall_step_s is not None and not 0.0 < max_wall_step_s < float("inf"):
-            raise ValueError(f"SimClock max_wall_step_s must be a positive number of seconds, got {max_wall_step_s}")
+            raise SimError(
+                f"SimClock max_wall_step_s must be a positive number of seconds, got {max_wall_step_s}; "
+                "give a finite step > 0 or None"
+            )
         if not 0.0 < late_lead_s < float("inf"):
-            raise ValueError(f"SimClock late_lead_s must be a positive number of seconds, got {late_lead_s}")
+            raise SimError(
+                f"SimClock late_lead_s must be a positive number of seconds, got {late_lead_s}; give a finite lead > 0"
+            )
         self._speed = float(speed)
         self._wall0 = time.monotonic()
         self._start_ns = time.time_ns() if start_ns is None else int(start_ns)
@@ -314,7 +323,7 @@ class LockstepClock:
     def advance(self, duration_s: float) -> None:
         """Move time forward by ``duration_s`` and wake every sleeper that is due."""
         if duration_s < 0.0:
-            raise ValueError(f"time cannot go backwards (advance by {duration_s})")
+            raise SimError(f"time cannot go backwards (advance by {duration_s} s); advance by 0 or more")
         with self._cond:
             self._now_s += duration_s
             due: list[tuple[asyncio.AbstractEventLoop, asyncio.Future[None]]] = []

@@ -385,7 +385,13 @@ class LabConfig:
         only carries the raw table, so the layering stays one-way.
         """
         if name not in CAPABILITY_SECTIONS:
-            raise ValueError(f"{name!r} is not a registered capability section ({', '.join(CAPABILITY_SECTIONS)})")
+            raise ConfigError(
+                self.source_path,
+                name,
+                "is not a registered capability section",
+                f"use one of {', '.join(CAPABILITY_SECTIONS)} (or register it in CAPABILITY_SECTIONS)",
+                name,
+            )
         return load_section(cls, self.capability_tables.get(name, {}), path=self.source_path, prefix=name)
 
 

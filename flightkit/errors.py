@@ -4,13 +4,14 @@
 
     FlightkitError
     ├── ConfigError            bad TOML: names file, key, value and the fix
+    │   └── PlanError          a pattern or plan that cannot be flown as given (parameters, geofence)
     ├── LinkError              anything between us and the autopilot
     │   ├── EndpointError      a connection string we cannot open (bad syntax, port in use)
     │   ├── LinkTimeout        nothing answered in time (heartbeat, COMMAND_ACK, state change)
     │   └── CommandRejected    the autopilot answered "no" (carries its reason and STATUSTEXT)
     ├── FrameError             a pose in a frame that cannot be placed in the world
+    ├── TransformError         an array that is not a 3-vector or rigid transform (also a ValueError)
     ├── SetpointError          a setpoint that is out of range or malformed
-    ├── PlanError              a plan or pattern that cannot be flown as given (geofence, laps)
     ├── MocapError             mocap source failures
     │   └── MocapBodyMissing   the rigid body is not visible (carries the bodies that are)
     ├── BusError               Zenoh session or encoding problems
@@ -18,10 +19,18 @@
     ├── DatasetError           an unreadable or incomplete dataset folder / recording
     ├── EstimationError        visual odometry and evaluation
     ├── SafetyAbort            the supervisor ended a flight (carries the fault)
+    ├── SimError               the simulated lab got impossible parameters or a call out of order
     └── ProtocolError          the serial/BLE pose-reporting protocol
 
 Every message says what is wrong, the value involved and what to do about it. Context is
 kept in public attributes so callers can react without parsing text.
+
+Library code raises only these (``tests/unit/test_errors_raised.py`` scans for bare
+``ValueError`` / ``RuntimeError``), value types' ``__post_init__`` included: a value built in
+Python with wrong fields raises the error of its domain (a :class:`ConfigError` names the class
+in angle brackets as its ``path``, e.g. ``"<SessionConfig>"``). Only :class:`TransformError`
+is also a ``ValueError``: it is the argument check of numeric functions, where numpy's
+convention is ``ValueError``.
 """
 
 from __future__ import annotations
@@ -44,6 +53,8 @@ __all__ = [
     "ProtocolError",
     "SafetyAbort",
     "SetpointError",
+    "SimError",
+    "TransformError",
 ]
 
 
@@ -68,6 +79,29 @@ class ConfigError(FlightkitError):
         self.problem = problem
         self.fix = fix
         super().__init__(f"{path}: {key}: {problem}; {fix}")
+
+
+class PlanError(ConfigError):
+    """A pattern or plan cannot be flown as given: its parameters make no flight (a
+    non-positive speed, corners that coincide, laps that do not close) or it leaves the
+    geofence.
+
+    Raised by the pattern classes of ``trajectories`` when built in Python and by the runner;
+    a plan file's loader re-raises a pattern's as a :class:`ConfigError` naming the file and
+    ``pattern.<key>``. ``PlanError("message")`` alone is fine where no single key is at fault.
+
+    Attributes:
+        pattern: the pattern's name, e.g. ``"circle"`` ("" when not known; ``path`` is then
+            ``"<plan>"``).
+        key, value, problem, fix: as :class:`ConfigError` (key "" when no single key is at fault).
+    """
+
+    def __init__(self, problem: str, fix: str = "", *, pattern: str = "", key: str = "", value: object = None) -> None:
+        self.pattern = pattern
+        super().__init__(pattern or "<plan>", key, problem, fix, value)
+        where = ": ".join(part for part in (pattern, key) if part)
+        text = f"{where}: {problem}" if where else problem
+        self.args = (f"{text}; {fix}" if fix else text,)
 
 
 class LinkError(FlightkitError):
@@ -127,13 +161,13 @@ class FrameError(FlightkitError):
         )
 
 
+class TransformError(FlightkitError, ValueError):
+    """An array is not the 3-vector, rotation or rigid transform a function needs (its shape,
+    or values that are not finite). Also a ``ValueError``, as numpy's own shape errors are."""
+
+
 class SetpointError(FlightkitError):
     """A setpoint is malformed or outside the configured limits."""
-
-
-class PlanError(FlightkitError):
-    """A flight plan or pattern cannot be flown as given (it leaves the geofence, its laps do
-    not close); the message names the part and what to change."""
 
 
 class MocapError(FlightkitError):
@@ -184,6 +218,11 @@ class SafetyAbort(FlightkitError):
     def __init__(self, reason: str, message: str) -> None:
         self.reason = reason
         super().__init__(message)
+
+
+class SimError(FlightkitError):
+    """The simulated lab (clock, dynamics, autopilot, synthetic sequences) was given parameters
+    it cannot simulate, or was used out of order (e.g. before it was started)."""
 
 
 class ProtocolError(FlightkitError):

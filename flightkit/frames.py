@@ -28,7 +28,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
-from flightkit.errors import FrameError
+from flightkit.errors import FrameError, TransformError
 
 __all__ = [
     "MOCAP_FRAME_ID",
@@ -80,7 +80,9 @@ _FLIP_FLU_FRD: npt.NDArray[np.float64] = np.array([1.0, -1.0, -1.0])
 def _as_vec(values: Sequence[float] | npt.ArrayLike, name: str = "vector") -> npt.NDArray[np.float64]:
     arr = np.asarray(values, dtype=np.float64)
     if arr.shape[-1:] != (3,):
-        raise ValueError(f"{name} must have a last dimension of 3, got shape {arr.shape}")
+        raise TransformError(
+            f"{name} must have a last dimension of 3, got shape {arr.shape}; pass (x, y, z) or an (N, 3) array",
+        )
     return arr
 
 
@@ -199,9 +201,9 @@ class Transform:
     def __post_init__(self) -> None:
         t = np.array(self.translation, dtype=np.float64).reshape(-1)
         if t.shape != (3,):
-            raise ValueError(f"translation must have 3 elements, got {t.shape}")
+            raise TransformError(f"translation must have 3 elements, got shape {t.shape}; pass (x, y, z) in metres")
         if not np.all(np.isfinite(t)):
-            raise ValueError(f"translation must be finite, got {t}")
+            raise TransformError(f"translation must be finite, got {t}; check the pose source for NaN or inf")
         object.__setattr__(self, "translation", t)
 
     @staticmethod
@@ -213,7 +215,7 @@ class Transform:
         """From a 4x4 (or 3x4) homogeneous matrix."""
         m = np.asarray(T, dtype=np.float64)
         if m.shape not in ((4, 4), (3, 4)):
-            raise ValueError(f"expected a 4x4 or 3x4 matrix, got shape {m.shape}")
+            raise TransformError(f"expected a 4x4 or 3x4 homogeneous matrix, got shape {m.shape}; pass [R | t] rows")
         return Transform(Rotation.from_matrix(m[:3, :3]), m[:3, 3].copy())
 
     @staticmethod

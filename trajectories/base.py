@@ -21,6 +21,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
+from flightkit.errors import PlanError
+from flightkit.frames import Vec3Tuple
+
 __all__ = [
     "Move",
     "Pattern",
@@ -28,7 +31,6 @@ __all__ = [
     "Reference",
     "Segment",
     "Turn",
-    "Vec3",
     "YawMode",
     "chain",
     "heading_rad",
@@ -37,7 +39,6 @@ __all__ = [
     "unwrap_next",
 ]
 
-Vec3 = tuple[float, float, float]
 
 
 class YawMode(enum.Enum):
@@ -73,8 +74,8 @@ class Reference:
     """
 
     t_s: float
-    pos_m: Vec3
-    vel_m_s: Vec3
+    pos_m: Vec3Tuple
+    vel_m_s: Vec3Tuple
     yaw_rad: float
     yaw_rate_rad_s: float = 0.0
     lap: int = 0
@@ -166,7 +167,7 @@ class Segment(Protocol):
     @property
     def end_yaw_rad(self) -> float: ...
 
-    def at(self, tau_s: float) -> tuple[Vec3, Vec3, float, float]:
+    def at(self, tau_s: float) -> tuple[Vec3Tuple, Vec3Tuple, float, float]:
         """(pos, vel, yaw, yaw_rate) at local time ``tau_s``."""
         ...
 
@@ -175,8 +176,8 @@ class Segment(Protocol):
 class Move:
     """A straight move from rest to rest at a constant yaw, speed ramped within ``accel_m_s2``."""
 
-    start_m: Vec3
-    end_m: Vec3
+    start_m: Vec3Tuple
+    end_m: Vec3Tuple
     speed_m_s: float
     accel_m_s2: float
     yaw_rad: float
@@ -197,7 +198,7 @@ class Move:
     def end_yaw_rad(self) -> float:
         return self.yaw_rad
 
-    def at(self, tau_s: float) -> tuple[Vec3, Vec3, float, float]:
+    def at(self, tau_s: float) -> tuple[Vec3Tuple, Vec3Tuple, float, float]:
         length = self.length_m
         if length <= 0.0:
             return self.start_m, (0.0, 0.0, 0.0), self.yaw_rad, 0.0
@@ -216,7 +217,7 @@ class Turn:
     ``pi/2 * delta / duration`` in the middle.
     """
 
-    pos_m: Vec3
+    pos_m: Vec3Tuple
     from_yaw_rad: float
     to_yaw_rad: float
     turn_duration_s: float
@@ -233,7 +234,7 @@ class Turn:
     def end_yaw_rad(self) -> float:
         return self.to_yaw_rad
 
-    def at(self, tau_s: float) -> tuple[Vec3, Vec3, float, float]:
+    def at(self, tau_s: float) -> tuple[Vec3Tuple, Vec3Tuple, float, float]:
         d = self.to_yaw_rad - self.from_yaw_rad
         T = self.turn_duration_s
         if T <= 0.0 or d == 0.0:
@@ -253,15 +254,26 @@ class PiecewisePattern:
     continuous.
 
     Raises:
-        ValueError: when the segments do not join, or a multi-lap pattern does not close.
+        PlanError: when the segments do not join, or a multi-lap pattern does not close.
     """
 
     def __init__(self, name: str, segments: Sequence[Segment], laps: int = 1) -> None:
         if laps < 1:
-            raise ValueError(f"{name}: laps must be at least 1, got {laps}")
+            raise PlanError(
+                f"laps must be at least 1, got {laps}",
+                "give laps >= 1",
+                pattern=name,
+                key="laps",
+                value=laps,
+            )
         segs = [s for s in segments if s.duration_s > 0.0]
         if not segs:
-            raise ValueError(f"{name}: the pattern has no motion (all segments are empty)")
+            raise PlanError(
+                "the pattern has no motion (all segments are empty)",
+                "give it a size, a speed or a duration",
+                pattern=name,
+                key="segments",
+            )
         self._name = name
         self._laps = int(laps)
         self._segments = segs
@@ -281,9 +293,13 @@ class PiecewisePattern:
             gap = math.dist(first_pos, last_pos)
             turns = self._lap_yaw_delta / (2.0 * math.pi)
             if gap > 1e-6 or abs(turns - round(turns)) > 1e-6:
-                raise ValueError(
-                    f"{name}: a lap ends {gap:.3f} m and {math.degrees(self._lap_yaw_delta):.1f} deg "
-                    "away from where it starts, so it cannot be repeated; use laps = 1"
+                raise PlanError(
+                    f"a lap ends {gap:.3f} m and {math.degrees(self._lap_yaw_delta):.1f} deg "
+                    f"away from where it starts, so it cannot be repeated {laps} times",
+                    "use laps = 1",
+                    pattern=name,
+                    key="laps",
+                    value=laps,
                 )
 
     @property
@@ -323,11 +339,16 @@ def _check_join(name: str, a: Segment, b: Segment) -> None:
     pa, _, ya, _ = a.at(a.duration_s)
     pb, _, yb, _ = b.at(0.0)
     if math.dist(pa, pb) > 1e-6 or abs(ya - yb) > 1e-6:
-        raise ValueError(f"{name}: segments do not join at {pa} / {pb} (internal error)")
+        raise PlanError(
+            f"segments do not join at {pa} / {pb} (internal error)",
+            "report this as a bug in the pattern",
+            pattern=name,
+            key="segments",
+        )
 
 
 def chain(
-    points: Sequence[Vec3],
+    points: Sequence[Vec3Tuple],
     yaws_rad: Sequence[float],
     speed_m_s: float,
     accel_m_s2: float,

@@ -5,7 +5,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from trajectories.base import Reference, Vec3, YawMode, trapezoid, trapezoid_duration_s, unwrap_next
+from flightkit.errors import PlanError
+from flightkit.frames import Vec3Tuple
+from trajectories.base import Reference, YawMode, trapezoid, trapezoid_duration_s, unwrap_next
 
 __all__ = ["Circle"]
 
@@ -46,17 +48,52 @@ class Circle:
 
     def __post_init__(self) -> None:
         if not self.radius_m > 0.0:
-            raise ValueError(f"circle radius must be positive, got {self.radius_m} m")
+            raise PlanError(
+                f"radius must be positive, got {self.radius_m} m",
+                "give a radius > 0",
+                pattern="circle",
+                key="radius_m",
+                value=self.radius_m,
+            )
         if (self.period_s is None) == (self.speed_m_s is None):
-            raise ValueError("give the circle either period_s or speed_m_s, not both or neither")
+            raise PlanError(
+                f"period_s = {self.period_s} and speed_m_s = {self.speed_m_s}",
+                "give the circle either period_s or speed_m_s, not both or neither",
+                pattern="circle",
+                key="period_s",
+            )
         if self.period_s is not None and not self.period_s > 0.0:
-            raise ValueError(f"circle period must be positive, got {self.period_s} s")
+            raise PlanError(
+                f"period must be positive, got {self.period_s} s",
+                "give a period > 0",
+                pattern="circle",
+                key="period_s",
+                value=self.period_s,
+            )
         if self.speed_m_s is not None and not self.speed_m_s > 0.0:
-            raise ValueError(f"circle speed must be positive, got {self.speed_m_s} m/s")
+            raise PlanError(
+                f"speed must be positive, got {self.speed_m_s} m/s",
+                "give a speed > 0",
+                pattern="circle",
+                key="speed_m_s",
+                value=self.speed_m_s,
+            )
         if self.laps < 1:
-            raise ValueError(f"circle laps must be at least 1, got {self.laps}")
+            raise PlanError(
+                f"laps must be at least 1, got {self.laps}",
+                "give laps >= 1",
+                pattern="circle",
+                key="laps",
+                value=self.laps,
+            )
         if not self.accel_m_s2 > 0.0:
-            raise ValueError(f"circle accel_m_s2 must be positive, got {self.accel_m_s2}")
+            raise PlanError(
+                f"must be positive, got {self.accel_m_s2} m/s^2",
+                "give an acceleration > 0",
+                pattern="circle",
+                key="accel_m_s2",
+                value=self.accel_m_s2,
+            )
 
     @property
     def name(self) -> str:
@@ -107,8 +144,8 @@ class Circle:
         dth = sgn * s / r
         th = self.start_angle_rad + dth
         c, si = math.cos(th), math.sin(th)
-        pos: Vec3 = (self.centre_m[0] + r * c, self.centre_m[1] + r * si, self.height_m)
-        vel: Vec3 = (-sgn * v * si, sgn * v * c, 0.0)
+        pos: Vec3Tuple = (self.centre_m[0] + r * c, self.centre_m[1] + r * si, self.height_m)
+        vel: Vec3Tuple = (-sgn * v * si, sgn * v * c, 0.0)
         if self.yaw_mode is YawMode.FIXED:
             yaw, rate = self._yaw0(), 0.0
         else:

@@ -26,9 +26,9 @@ import math
 from dataclasses import dataclass, field
 
 from flightkit.config import setting
-from flightkit.frames import wrap_angle_rad
+from flightkit.frames import Vec3Tuple, wrap_angle_rad
 from flightkit.link.base import SetpointFrame, VelocitySetpoint
-from trajectories.base import Reference, Vec3
+from trajectories.base import Reference
 
 __all__ = ["ControlOutput", "ControllerConfig", "OutputFrame", "VelocityController", "YawControl"]
 
@@ -95,8 +95,8 @@ class ControlOutput:
     """
 
     setpoint: VelocitySetpoint
-    vel_world_m_s: Vec3
-    error_m: Vec3
+    vel_world_m_s: Vec3Tuple
+    error_m: Vec3Tuple
     yaw_error_rad: float
     saturated: bool
 
@@ -117,12 +117,12 @@ class VelocityController:
         self._int = [0.0, 0.0, 0.0]
 
     @property
-    def integral_m_s(self) -> Vec3:
+    def integral_m_s(self) -> Vec3Tuple:
         """Current integral contribution (world ENU, m/s)."""
         c = self.config
         return (c.ki_horizontal * self._int[0], c.ki_horizontal * self._int[1], c.ki_vertical * self._int[2])
 
-    def step(self, ref: Reference, pos_m: Vec3, yaw_rad: float, dt_s: float) -> ControlOutput:
+    def step(self, ref: Reference, pos_m: Vec3Tuple, yaw_rad: float, dt_s: float) -> ControlOutput:
         """Compute the setpoint for the measured position ``pos_m`` (world ENU) and heading ``yaw_rad``.
 
         ``dt_s`` is the time since the previous step (for the integral); 0 disables integration.

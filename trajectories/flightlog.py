@@ -22,7 +22,7 @@ from typing import Any, TextIO
 import numpy as np
 import numpy.typing as npt
 
-from flightkit.errors import FlightkitError
+from flightkit.errors import DatasetError, FlightkitError
 from trajectories.supervisor import Fault
 
 __all__ = ["COLUMNS", "FlightLog", "FlightLogData", "FlightSummary", "PhaseStats", "read_flight_log"]
@@ -253,7 +253,7 @@ def read_flight_log(path: str | Path) -> FlightLogData:
     """Read a flight log written by :class:`FlightLog`.
 
     Raises:
-        FileNotFoundError: no such file. ValueError: not a flightkit flight log.
+        FileNotFoundError: no such file. DatasetError: not a flightkit flight log, or a malformed one.
     """
     meta: dict[str, Any] = {}
     faults: list[dict[str, Any]] = []
@@ -263,19 +263,28 @@ def read_flight_log(path: str | Path) -> FlightLogData:
     with Path(path).open(encoding="utf-8") as fh:
         first = fh.readline()
         if not first.startswith(_MAGIC):
-            raise ValueError(f"{path} is not a flightkit flight log (first line {first[:40]!r})")
-        meta = json.loads(first[len(_MAGIC) :])
-        for line in fh:
-            if line.startswith("# fault "):
-                faults.append(json.loads(line[8:]))
-            elif line.startswith("# summary "):
-                summary = json.loads(line[10:])
-            elif not header:
-                header = line.rstrip("\n").split(",")
-            elif line.strip():
-                rows.append(line.rstrip("\n").split(","))
+            raise DatasetError(
+                f"{path} is not a flightkit flight log (first line {first[:40]!r}); "
+                "give a log written by flightkit fly or sim (--log)"
+            )
+        try:
+            meta = json.loads(first[len(_MAGIC) :])
+            for line in fh:
+                if line.startswith("# fault "):
+                    faults.append(json.loads(line[8:]))
+                elif line.startswith("# summary "):
+                    summary = json.loads(line[10:])
+                elif not header:
+                    header = line.rstrip("\n").split(",")
+                elif line.strip():
+                    rows.append(line.rstrip("\n").split(","))
+        except ValueError as exc:  # json.JSONDecodeError
+            raise DatasetError(f"{path}: a metadata line is not valid JSON ({exc}); is the log truncated?") from exc
     cols: dict[str, npt.NDArray[Any]] = {}
-    for i, name in enumerate(header):
-        vals = [r[i] for r in rows]
-        cols[name] = np.array(vals, dtype=object if name in _STR_COLS else np.float64)
+    try:
+        for i, name in enumerate(header):
+            vals = [r[i] for r in rows]
+            cols[name] = np.array(vals, dtype=object if name in _STR_COLS else np.float64)
+    except (ValueError, IndexError) as exc:
+        raise DatasetError(f"{path}: a row does not match the header ({exc}); is the log truncated?") from exc
     return FlightLogData(meta, cols, faults, summary)

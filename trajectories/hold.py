@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from trajectories.base import PiecewisePattern, Turn, Vec3
+from flightkit.errors import PlanError
+from flightkit.frames import Vec3Tuple
+from trajectories.base import PiecewisePattern, Turn
 
 __all__ = ["Hold"]
 
@@ -10,9 +12,15 @@ __all__ = ["Hold"]
 class Hold(PiecewisePattern):
     """Hold ``pos_m`` (world ENU) at heading ``yaw_rad`` for ``duration_s`` seconds."""
 
-    def __init__(self, pos_m: Vec3, yaw_rad: float, duration_s: float) -> None:
+    def __init__(self, pos_m: Vec3Tuple, yaw_rad: float, duration_s: float) -> None:
         if not duration_s > 0.0:
-            raise ValueError(f"hold: duration must be positive, got {duration_s} s")
+            raise PlanError(
+                f"duration must be positive, got {duration_s} s",
+                "hold for a duration > 0",
+                pattern="hold",
+                key="duration_s",
+                value=duration_s,
+            )
         p = (float(pos_m[0]), float(pos_m[1]), float(pos_m[2]))
         self.pos_m = p
         self.yaw_rad = float(yaw_rad)

@@ -5,7 +5,9 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-from trajectories.base import PiecewisePattern, Reference, Vec3, YawMode, chain, heading_rad, unwrap_next
+from flightkit.errors import PlanError
+from flightkit.frames import Vec3Tuple
+from trajectories.base import PiecewisePattern, Reference, YawMode, chain, heading_rad, unwrap_next
 
 __all__ = ["Lawnmower", "lawnmower_points"]
 
@@ -57,24 +59,58 @@ class Lawnmower(PiecewisePattern):
         return_to_start: bool = True,
     ) -> None:
         if not spacing_m > 0.0:
-            raise ValueError(f"lawnmower: lane spacing must be positive, got {spacing_m} m")
+            raise PlanError(
+                f"lane spacing must be positive, got {spacing_m} m",
+                "give a spacing > 0",
+                pattern="lawnmower",
+                key="spacing_m",
+                value=spacing_m,
+            )
         if size_m[0] <= 0.0 or size_m[1] < 0.0:
-            raise ValueError(f"lawnmower: size must be positive, got {tuple(size_m)}")
+            raise PlanError(
+                f"size must be positive, got {tuple(size_m)} m",
+                "give a length > 0 and a width >= 0",
+                pattern="lawnmower",
+                key="size_m",
+                value=tuple(size_m),
+            )
         if yaw_mode not in (YawMode.TRAVEL, YawMode.FIXED):
-            raise ValueError(f"lawnmower: yaw_mode must be travel or fixed, got {yaw_mode.value}")
+            raise PlanError(
+                f"{yaw_mode.value!r} is not allowed here",
+                "use travel or fixed",
+                pattern="lawnmower",
+                key="yaw_mode",
+                value=yaw_mode.value,
+            )
         if not speed_m_s > 0.0 or not accel_m_s2 > 0.0:
-            raise ValueError(f"lawnmower: speed ({speed_m_s}) and accel ({accel_m_s2}) must be positive")
+            raise PlanError(
+                f"speed ({speed_m_s} m/s) and accel ({accel_m_s2} m/s^2) must be positive",
+                "give both > 0",
+                pattern="lawnmower",
+                key="speed_m_s" if not speed_m_s > 0.0 else "accel_m_s2",
+                value=speed_m_s if not speed_m_s > 0.0 else accel_m_s2,
+            )
         if laps > 1 and not return_to_start:
-            raise ValueError("lawnmower: several laps need return_to_start = true")
+            raise PlanError(
+                f"{laps} laps need return_to_start = true",
+                "set return_to_start = true or laps = 1",
+                pattern="lawnmower",
+                key="laps",
+                value=laps,
+            )
         if yaw_mode is YawMode.TRAVEL and not turn_s > 0.0:
-            raise ValueError(
-                "lawnmower: yaw = 'travel' turns in place at every corner; give turn_s > 0 or yaw = 'fixed'"
+            raise PlanError(
+                "yaw = 'travel' turns in place at every corner, which takes time",
+                "give turn_s > 0 or yaw = 'fixed'",
+                pattern="lawnmower",
+                key="turn_s",
+                value=turn_s,
             )
         pts2 = lawnmower_points(origin_m, size_m, spacing_m, lane_dir_rad)
         if return_to_start and math.dist(pts2[-1], pts2[0]) > 1e-9:
             pts2.append(pts2[0])
         z = float(height_m)
-        points: list[Vec3] = [(x, y, z) for x, y in pts2]
+        points: list[Vec3Tuple] = [(x, y, z) for x, y in pts2]
         yaws: list[float] = []
         prev = 0.0
         for i in range(len(points) - 1):

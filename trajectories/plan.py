@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from flightkit.config import LabConfig, load_section, load_toml, setting
-from flightkit.errors import ConfigError
+from flightkit.errors import ConfigError, PlanError
 from trajectories.base import Pattern, YawMode
 from trajectories.circle import Circle
 from trajectories.controller import ControllerConfig
@@ -334,11 +334,13 @@ class Plan:
         return self.settings.name
 
     def build_pattern(self) -> Pattern:
-        """The pattern object (pure); raises ConfigError if the values make no pattern."""
+        """The pattern object (pure); raises ConfigError (naming the file and ``pattern.<key>``)
+        if the values make no pattern."""
         try:
             return self.pattern.build()
-        except ValueError as exc:
-            raise ConfigError(self.source_path, "pattern", str(exc), "fix the [pattern] values") from exc
+        except PlanError as exc:
+            key = f"pattern.{exc.key}" if exc.key else "pattern"
+            raise ConfigError(self.source_path, key, exc.problem, exc.fix, exc.value) from exc
 
     def with_lab_defaults(self, lab: LabConfig) -> Plan:
         """This plan with the lab's own ``[control]`` and ``[safety]`` tables as defaults.

@@ -14,7 +14,7 @@ __all__ = ["plot_flight_log"]
 def plot_flight_log(log_path: str | Path, out_dir: str | Path | None = None) -> list[Path]:
     """Write ``<log>-top.png`` and ``<log>-error.png`` next to the log (or into ``out_dir``).
 
-    Returns the PNG paths. Raises ValueError for a file that is not a flight log.
+    Returns the PNG paths. Raises DatasetError for a file that is not a flight log.
     """
     import matplotlib
 

@@ -5,11 +5,12 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
+from flightkit.errors import PlanError
+from flightkit.frames import Vec3Tuple
 from trajectories.base import (
     PiecewisePattern,
     Reference,
     Segment,
-    Vec3,
     YawMode,
     chain,
     heading_rad,
@@ -44,7 +45,7 @@ class Rectangle(PiecewisePattern):
     A lap ends at the first corner after the last turn, so laps repeat exactly.
 
     Raises:
-        ValueError: fewer than 3 corners, a degenerate side, or a non-positive speed.
+        PlanError: fewer than 3 corners, a degenerate side, or a non-positive speed.
     """
 
     def __init__(
@@ -61,16 +62,33 @@ class Rectangle(PiecewisePattern):
     ) -> None:
         pts = [(float(p[0]), float(p[1])) for p in corners_m]
         if len(pts) < 3:
-            raise ValueError(f"{name}: needs at least 3 corners, got {len(pts)}")
+            raise PlanError(
+                f"needs at least 3 corners, got {len(pts)}",
+                "give 3 or more corners",
+                pattern=name,
+                key="corners_m",
+                value=len(pts),
+            )
         if not speed_m_s > 0.0 or not accel_m_s2 > 0.0 or turn_s < 0.0:
-            raise ValueError(
-                f"{name}: speed_m_s ({speed_m_s}) and accel_m_s2 ({accel_m_s2}) must be positive, "
-                f"turn_s ({turn_s}) not negative"
+            bad = "speed_m_s" if not speed_m_s > 0.0 else "accel_m_s2" if not accel_m_s2 > 0.0 else "turn_s"
+            raise PlanError(
+                f"speed_m_s ({speed_m_s}) and accel_m_s2 ({accel_m_s2}) must be positive, "
+                f"turn_s ({turn_s}) not negative",
+                f"fix {bad}",
+                pattern=name,
+                key=bad,
+                value={"speed_m_s": speed_m_s, "accel_m_s2": accel_m_s2, "turn_s": turn_s}[bad],
             )
         n = len(pts)
         for i in range(n):
             if math.dist(pts[i], pts[(i + 1) % n]) < 1e-6:
-                raise ValueError(f"{name}: corners {i} and {(i + 1) % n} coincide at {pts[i]}")
+                raise PlanError(
+                    f"corners {i} and {(i + 1) % n} coincide at {pts[i]}",
+                    "remove the repeated corner",
+                    pattern=name,
+                    key="corners_m",
+                    value=pts[i],
+                )
         area2 = sum(pts[i][0] * pts[(i + 1) % n][1] - pts[(i + 1) % n][0] * pts[i][1] for i in range(n))
         ccw = area2 > 0.0
         inward_offset = (math.pi / 2.0) if ccw else (-math.pi / 2.0)
@@ -89,7 +107,7 @@ class Rectangle(PiecewisePattern):
             yaw = unwrap_next(prev, yaw)
             yaws.append(yaw)
             prev = yaw
-        points: list[Vec3] = [(x, y, float(height_m)) for x, y in pts] + [
+        points: list[Vec3Tuple] = [(x, y, float(height_m)) for x, y in pts] + [
             (pts[0][0], pts[0][1], float(height_m))
         ]
         segs: list[Segment] = chain(points, yaws, speed_m_s, accel_m_s2, turn_s)

@@ -32,9 +32,10 @@ from typing import Any, cast
 from flightkit.clock import Clock, WallClock
 from flightkit.config import LabConfig
 from flightkit.errors import CommandRejected, LinkError, LinkTimeout, MocapError, PlanError, SafetyAbort
+from flightkit.frames import Vec3Tuple
 from flightkit.link.base import LandedState, VehicleLink
 from flightkit.mocap.base import MocapSource
-from trajectories.base import Pattern, PiecewisePattern, Reference, Turn, Vec3
+from trajectories.base import Pattern, PiecewisePattern, Reference, Turn
 from trajectories.circle import Circle
 from trajectories.control_loop import ControlLoop, LiftOff, Status
 from trajectories.controller import ControllerConfig, VelocityController
@@ -132,7 +133,7 @@ class FlightRunner:
             self.loop, safety=self.safety, landed_timeout_s=self.settings.landed_timeout_s, land=self._controlled_land
         )
         self._headroom_warned: set[str] = set()
-        self._last_target: Vec3 | None = None
+        self._last_target: Vec3Tuple | None = None
         self._last_yaw: float | None = None
         self.pattern_started_s = math.nan
         """Clock time of the last pattern's first cycle (a fleet's start skew is measured on it)."""
@@ -154,7 +155,7 @@ class FlightRunner:
         """A fault ended the flight (landed, released or stopped)."""
         return self.reactor.ended
 
-    def current_pose(self) -> tuple[Vec3, float]:
+    def current_pose(self) -> tuple[Vec3Tuple, float]:
         """Newest valid mocap position (world ENU) and yaw; MocapBodyMissing when there is none."""
         return self.loop.current_pose()
 
@@ -292,7 +293,7 @@ class FlightRunner:
         else:
             self._last_target, self._last_yaw = (pos[0], pos[1], height_m), yaw
 
-    async def _autopilot_liftoff(self, pos: Vec3, yaw: float, lift_m: float) -> None:
+    async def _autopilot_liftoff(self, pos: Vec3Tuple, yaw: float, lift_m: float) -> None:
         """The firmware leaves the ground only on its own take-off command: pause the setpoint
         stream (a velocity setpoint would cancel its climb), command the lift-off and watch it,
         supervising, without sending, until near ``lift_m`` up."""
@@ -316,27 +317,27 @@ class FlightRunner:
             raise
         await self.link.start_setpoint_stream(rate_hz)
 
-    def _liftoff_reference(self, pos: Vec3, yaw: float, climb_m_s: float) -> LiftOff:
+    def _liftoff_reference(self, pos: Vec3Tuple, yaw: float, climb_m_s: float) -> LiftOff:
         def height() -> float | None:
             p = self.loop.current_position()
             return None if p is None else p[2]
 
         return LiftOff(pos, yaw, climb_m_s, height)
 
-    async def hold(self, duration_s: float, pos_m: Vec3 | None = None, yaw_rad: float | None = None) -> None:
+    async def hold(self, duration_s: float, pos_m: Vec3Tuple | None = None, yaw_rad: float | None = None) -> None:
         """Hold ``pos_m`` (default: the current reference end / position) for ``duration_s``; blocks."""
         if duration_s <= 0:
             return
         p, y = self._here(pos_m, yaw_rad)
         await self.reactor.run(lambda: self.loop.track(Hold(p, y, duration_s), "hold"))
 
-    def _here(self, pos_m: Vec3 | None, yaw_rad: float | None) -> tuple[Vec3, float]:
+    def _here(self, pos_m: Vec3Tuple | None, yaw_rad: float | None) -> tuple[Vec3Tuple, float]:
         cur, cyaw = self.current_pose()
         return (pos_m or self._last_target or cur), (
             yaw_rad if yaw_rad is not None else (self._last_yaw if self._last_yaw is not None else cyaw)
         )
 
-    async def goto(self, pos_m: Vec3, yaw_rad: float | None = None, speed_m_s: float | None = None) -> None:
+    async def goto(self, pos_m: Vec3Tuple, yaw_rad: float | None = None, speed_m_s: float | None = None) -> None:
         """Fly a straight line to ``pos_m`` (world ENU), then turn in place to ``yaw_rad``.
 
         Blocks until there."""
@@ -378,7 +379,7 @@ class FlightRunner:
             )
         return cap
 
-    def _transit_speed(self, start: Vec3, end: Vec3, speed_m_s: float) -> float:
+    def _transit_speed(self, start: Vec3Tuple, end: Vec3Tuple, speed_m_s: float) -> float:
         """The speed along a straight transit that keeps both its horizontal and vertical parts
         within :data:`REFERENCE_HEADROOM` of the controller's limits."""
         c = self.loop.controller.config

@@ -36,9 +36,10 @@ from typing import Self
 from flightkit.clock import Clock, WallClock
 from flightkit.config import LabConfig
 from flightkit.errors import FlightkitError
+from flightkit.frames import Vec3Tuple
 from flightkit.link.base import VehicleLink
 from flightkit.mocap.base import MocapSource
-from trajectories.base import Pattern, Vec3
+from trajectories.base import Pattern
 from trajectories.controller import ControllerConfig
 from trajectories.flightlog import FlightLog, FlightSummary
 from trajectories.plan import PlanSettings
@@ -184,7 +185,7 @@ class Flight:
         """Take off to ``height_m`` (world z, metres). Blocks until there; SafetyAbort on a fault."""
         await self.runner.takeoff(height_m, climb_m_s)
 
-    async def hold(self, duration_s: float, pos_m: Vec3 | None = None, yaw_rad: float | None = None) -> None:
+    async def hold(self, duration_s: float, pos_m: Vec3Tuple | None = None, yaw_rad: float | None = None) -> None:
         """Hold the last target (or ``pos_m``/``yaw_rad``) for ``duration_s``. Blocks for that long."""
         await self.runner.hold(duration_s, pos_m, yaw_rad)
 
@@ -192,7 +193,7 @@ class Flight:
         """Move to the pattern's start, then fly it (``laps`` times). Blocks until the last lap ends."""
         await self.runner.fly(pattern, laps)
 
-    async def goto(self, pos_m: Vec3, yaw_rad: float | None = None, speed_m_s: float | None = None) -> None:
+    async def goto(self, pos_m: Vec3Tuple, yaw_rad: float | None = None, speed_m_s: float | None = None) -> None:
         """Fly straight to ``pos_m`` (world ENU), then turn to ``yaw_rad``. Blocks until there."""
         await self.runner.goto(pos_m, yaw_rad, speed_m_s)
 

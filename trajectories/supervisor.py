@@ -35,8 +35,8 @@ from dataclasses import dataclass
 
 from flightkit.config import setting
 from flightkit.errors import ConfigError
+from flightkit.frames import Vec3Tuple
 from flightkit.link.base import FlightMode, Telemetry
-from trajectories.base import Vec3
 
 __all__ = [
     "ACTION_OF",
@@ -214,8 +214,8 @@ class SupervisorInput:
     mocap_age_s: float
     telemetry: Telemetry
     control_mode: FlightMode | None = None
-    pos_m: Vec3 | None = None
-    ref_pos_m: Vec3 | None = None
+    pos_m: Vec3Tuple | None = None
+    ref_pos_m: Vec3Tuple | None = None
     speed_m_s: float = math.nan
     interrupted: bool = False
     external: tuple[Fault, ...] = ()
@@ -314,7 +314,7 @@ def preflight_problems(
     visible_bodies: Sequence[str],
     body_valid: bool,
     telemetry: Telemetry,
-    pos_m: Vec3 | None,
+    pos_m: Vec3Tuple | None,
 ) -> list[str]:
     """Reasons not to arm, each one sentence; an empty list means go.
 

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from trajectories.base import Move, PiecewisePattern, Vec3
+from flightkit.errors import PlanError
+from flightkit.frames import Vec3Tuple
+from trajectories.base import Move, PiecewisePattern
 
 __all__ = ["Land", "Takeoff"]
 
@@ -12,19 +14,29 @@ class Takeoff(PiecewisePattern):
 
     def __init__(
         self,
-        start_m: Vec3,
+        start_m: Vec3Tuple,
         height_m: float,
         climb_m_s: float = 0.3,
         accel_m_s2: float = 0.5,
         yaw_rad: float = 0.0,
     ) -> None:
         if not climb_m_s > 0.0:
-            raise ValueError(f"takeoff: climb rate must be positive, got {climb_m_s} m/s")
+            raise PlanError(
+                f"climb rate must be positive, got {climb_m_s} m/s",
+                "give a climb rate > 0",
+                pattern="takeoff",
+                key="climb_m_s",
+                value=climb_m_s,
+            )
         top = (float(start_m[0]), float(start_m[1]), float(height_m))
         start = (float(start_m[0]), float(start_m[1]), float(start_m[2]))
         if top[2] <= start[2]:
-            raise ValueError(
-                f"takeoff: target height {height_m} m is not above the start height {start[2]:.2f} m"
+            raise PlanError(
+                f"target height {height_m} m is not above the start height {start[2]:.2f} m",
+                "take off to a height above the vehicle",
+                pattern="takeoff",
+                key="height_m",
+                value=height_m,
             )
         self.height_m = float(height_m)
         super().__init__("takeoff", [Move(start, top, climb_m_s, accel_m_s2, float(yaw_rad))], 1)
@@ -39,7 +51,7 @@ class Land(PiecewisePattern):
 
     def __init__(
         self,
-        start_m: Vec3,
+        start_m: Vec3Tuple,
         descent_m_s: float = 0.3,
         floor_m: float = 0.0,
         push_m: float = 0.3,
@@ -47,7 +59,13 @@ class Land(PiecewisePattern):
         yaw_rad: float = 0.0,
     ) -> None:
         if not descent_m_s > 0.0:
-            raise ValueError(f"land: descent rate must be positive, got {descent_m_s} m/s")
+            raise PlanError(
+                f"descent rate must be positive, got {descent_m_s} m/s",
+                "give a descent rate > 0",
+                pattern="land",
+                key="descent_m_s",
+                value=descent_m_s,
+            )
         start = (float(start_m[0]), float(start_m[1]), float(start_m[2]))
         bottom = (start[0], start[1], min(float(floor_m), start[2]) - float(push_m))
         super().__init__("land", [Move(start, bottom, descent_m_s, accel_m_s2, float(yaw_rad))], 1)

@@ -5,7 +5,9 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-from trajectories.base import PiecewisePattern, Turn, Vec3, YawMode, chain, heading_rad, unwrap_next
+from flightkit.errors import PlanError
+from flightkit.frames import Vec3Tuple
+from trajectories.base import PiecewisePattern, Turn, YawMode, chain, heading_rad, unwrap_next
 
 __all__ = ["Line", "Waypoints"]
 
@@ -30,13 +32,31 @@ class Waypoints(PiecewisePattern):
         end_yaw_rad: float | None = None,
         name: str = "waypoints",
     ) -> None:
-        pts: list[Vec3] = [(float(p[0]), float(p[1]), float(p[2])) for p in points_m]
+        pts: list[Vec3Tuple] = [(float(p[0]), float(p[1]), float(p[2])) for p in points_m]
         if len(pts) < 2:
-            raise ValueError(f"{name}: needs at least 2 points, got {len(pts)}")
+            raise PlanError(
+                f"needs at least 2 points, got {len(pts)}",
+                "give a start and an end point",
+                pattern=name,
+                key="points_m",
+                value=len(pts),
+            )
         if not speed_m_s > 0.0 or not accel_m_s2 > 0.0:
-            raise ValueError(f"{name}: speed ({speed_m_s}) and accel ({accel_m_s2}) must be positive")
+            raise PlanError(
+                f"speed ({speed_m_s} m/s) and accel ({accel_m_s2} m/s^2) must be positive",
+                "give both > 0",
+                pattern=name,
+                key="speed_m_s" if not speed_m_s > 0.0 else "accel_m_s2",
+                value=speed_m_s if not speed_m_s > 0.0 else accel_m_s2,
+            )
         if yaw_mode not in (YawMode.FIXED, YawMode.TRAVEL):
-            raise ValueError(f"{name}: yaw_mode must be travel or fixed, got {yaw_mode.value}")
+            raise PlanError(
+                f"{yaw_mode.value!r} is not allowed here",
+                "use travel or fixed",
+                pattern=name,
+                key="yaw_mode",
+                value=yaw_mode.value,
+            )
         # drop repeated points
         dedup = [pts[0]] + [p for a, p in zip(pts, pts[1:], strict=False) if math.dist(a, p) > 1e-9]
         yaws: list[float] = []

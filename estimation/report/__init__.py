@@ -2,7 +2,7 @@
 
 * :mod:`.protocol`: framing (COBS, CRC-16/CCITT, zero delimiter) and the fault-proof deframer.
 * :mod:`.messages`: message types and payload codecs.
-* :mod:`.session`: the reliability state machine, sans-IO.
+* :mod:`.link_session`: the reliability state machine (the link session of a robot and the server), sans-IO.
 * :mod:`.transport`: a pyserial port driven by one thread, with pacing and reconnection.
 * :mod:`.mapframe`: the server's 2D map frame.
 * :mod:`.reporter` / :mod:`.mapserver`: the two ends.

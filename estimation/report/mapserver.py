@@ -1,7 +1,7 @@
 """The reference mapping server: robots, tracks and wall segments on a 2D map.
 
 One :class:`~.transport.SerialTransport` (one thread) per port, each running a
-:class:`~.session.ServerEndpoint`, so several robots can report over several dongles (or
+:class:`~.link_session.ServerEndpoint`, so several robots can report over several dongles (or
 share one radio channel, told apart by their robot id). The server keeps each robot's
 latest pose, its track and its segments, writes every event to a JSON-lines log, saves a
 PNG map, and sends navigation orders (reliably, in order) to a robot by id or name.
@@ -25,8 +25,7 @@ from flightkit.clock import Clock, WallClock
 from flightkit.errors import ProtocolError
 from flightkit.lifetime import Running
 
-from .messages import MsgType, NavOrder, PoseUpdate, Segment
-from .session import (
+from .link_session import (
     Connected,
     Delivered,
     LinkLost,
@@ -36,6 +35,7 @@ from .session import (
     ServerEndpoint,
     SessionConfig,
 )
+from .messages import MsgType, NavOrder, PoseUpdate, Segment
 from .transport import PortLost, PortOpened, SerialTransport, TransportEvent
 
 __all__ = ["MapServer", "OrderLine", "RobotState", "parse_orders"]
@@ -88,9 +88,12 @@ def parse_orders(text: str, source: str = "<orders>") -> list[OrderLine]:
         if not line:
             continue
         parts = line.split()
+        if not 3 <= len(parts) <= 5:
+            raise ProtocolError(
+                f"{source}:{n}: cannot read order {raw.strip()!r} ({len(parts)} fields); "
+                "write ROBOT X Y [Z] [HEADING_DEG]",
+            )
         try:
-            if not 3 <= len(parts) <= 5:
-                raise ValueError("expected ROBOT X Y [Z] [HEADING_DEG]")
             nums = [float(v) for v in parts[1:]]
             z = nums[2] if len(nums) > 2 else math.nan
             heading = math.radians(nums[3]) if len(nums) > 3 else math.nan

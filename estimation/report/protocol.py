@@ -33,6 +33,8 @@ import binascii
 import struct
 from dataclasses import dataclass, field
 
+from flightkit.errors import ProtocolError
+
 __all__ = [
     "CRC_SIZE",
     "HEADER_SIZE",
@@ -91,7 +93,7 @@ def cobs_decode(data: bytes) -> bytes:
     """Decode a COBS block (without delimiter).
 
     Raises:
-        ValueError: when the block is not valid COBS (a zero byte, or a code running past
+        ProtocolError: when the block is not valid COBS (a zero byte, or a code running past
             the end).
     """
     out = bytearray()
@@ -100,13 +102,17 @@ def cobs_decode(data: bytes) -> bytes:
     while i < n:
         code = data[i]
         if code == 0:
-            raise ValueError(f"zero byte inside a COBS block at offset {i}")
+            raise ProtocolError(
+                f"zero byte inside a COBS block at offset {i}; split frames at zero bytes before decoding",
+            )
         end = i + code
         if end > n:
-            raise ValueError(f"COBS code {code} at offset {i} runs past the end ({n} bytes)")
+            raise ProtocolError(f"COBS code {code} at offset {i} runs past the end ({n} bytes); the frame is truncated")
         block = data[i + 1 : end]
         if 0 in block:
-            raise ValueError("zero byte inside a COBS block")
+            raise ProtocolError(
+                f"zero byte inside the COBS block at offset {i}; split frames at zero bytes before decoding",
+            )
         out += block
         i = end
         if code != 0xFF and i < n:
@@ -139,12 +145,14 @@ def encode_frame(frame: Frame) -> bytes:
     """The wire bytes of ``frame``, delimiter included.
 
     Raises:
-        ValueError: when a field is out of range or the payload is too long.
+        ProtocolError: when a field is out of range or the payload is too long.
     """
     if len(frame.payload) > MAX_PAYLOAD:
-        raise ValueError(f"payload of {len(frame.payload)} bytes exceeds {MAX_PAYLOAD}; shorten it")
+        raise ProtocolError(f"payload of {len(frame.payload)} bytes exceeds {MAX_PAYLOAD}; shorten it")
     if not 0 <= frame.msg_type <= 15 or not 0 <= frame.version <= 15:
-        raise ValueError(f"msg_type {frame.msg_type} / version {frame.version} must fit in 4 bits")
+        raise ProtocolError(
+            f"msg_type {frame.msg_type} / version {frame.version} must fit in 4 bits (0-15); use a MsgType",
+        )
     raw = (
         _HEADER.pack((frame.version << 4) | frame.msg_type, frame.robot_id, frame.seq, frame.ack)
         + frame.payload
@@ -223,7 +231,7 @@ class Deframer:
     def _decode(self, block: bytes) -> Frame | None:
         try:
             raw = cobs_decode(block)
-        except ValueError:
+        except ProtocolError:
             self.stats.cobs_errors += 1
             return None
         if len(raw) < HEADER_SIZE + CRC_SIZE:

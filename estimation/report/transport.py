@@ -37,7 +37,7 @@ from flightkit.clock import Clock, WallClock
 from flightkit.errors import ProtocolError
 from flightkit.lifetime import Running
 
-from .session import Event
+from .link_session import Event
 
 __all__ = ["Endpoint", "PortLost", "PortOpened", "SerialTransport", "TransportEvent", "TransportStats"]
 
@@ -47,7 +47,7 @@ R = TypeVar("R")
 
 
 class Endpoint(Protocol):
-    """What a transport drives (:class:`~.session.RobotEndpoint`, :class:`~.session.ServerEndpoint`)."""
+    """What a transport drives (:class:`~.link_session.RobotEndpoint`, :class:`~.link_session.ServerEndpoint`)."""
 
     def receive_bytes(self, data: bytes, now_s: float) -> None: ...
     def next_bytes(self, now_s: float) -> bytes | None: ...

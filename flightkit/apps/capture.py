@@ -14,10 +14,10 @@ from pathlib import Path
 
 import zenoh
 
+from capture.bus_recorder import BusRecorder, start_recording
 from capture.config import CaptureConfig
 from capture.export import ExportReport, export_recording, export_vehicles
 from capture.info import RecordingInfo, StreamStats, recording_info
-from capture.session import BusRecorder, start_recording
 from capture.sources._runner import SourceThread
 from flightkit.bus.keys import Keys
 from flightkit.clock import Clock, SimClock, WallClock

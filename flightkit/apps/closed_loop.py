@@ -43,6 +43,7 @@ import numpy.typing as npt
 
 from flightkit.clock import ONE_PROCESS_WALL_STEP_S, Clock, SimClock
 from flightkit.config import Autopilot, LabConfig, LinkBackend
+from flightkit.errors import DatasetError
 from flightkit.frames import Transform, angle_diff_rad
 from flightkit.link.base import ExternalPoseKind
 
@@ -499,7 +500,7 @@ def _score(
     ref_xy = np.zeros((0, 2))
     try:
         log = read_flight_log(log_path)
-    except (OSError, ValueError):
+    except (OSError, DatasetError):
         log = None
     if log is not None and len(log):
         sel = log["phase"] == "pattern"

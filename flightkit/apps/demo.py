@@ -106,7 +106,7 @@ async def run_demo(
     Raises:
         LinkError, BusError, CaptureError: the set-up failed. EstimationError: the VO failed.
     """
-    from capture.session import start_recording
+    from capture.bus_recorder import start_recording
     from flightkit.apps.sim_lab import camera_streams
     from flightkit.bus.session import open_session
     from flightkit.mocap import open_mocap

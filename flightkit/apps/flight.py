@@ -77,11 +77,11 @@ def plot_log(log: str | Path, out_dir: str | Path | None = None) -> list[Path]:
     Raises:
         ConfigError: the log is missing or not a flight log.
     """
-    from flightkit.errors import ConfigError
+    from flightkit.errors import ConfigError, DatasetError
 
     try:
         return [Path(p) for p in plot_flight_log(log, out_dir)]
     except FileNotFoundError:
         raise ConfigError(str(log), "(file)", "file not found", "give the path of a flight log") from None
-    except ValueError as exc:
+    except DatasetError as exc:
         raise ConfigError(str(log), "(file)", str(exc), "give a log written by 'flightkit fly'") from None

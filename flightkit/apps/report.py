@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from estimation.report.link_session import SessionStats
 from estimation.report.mapserver import MapServer, parse_orders
 from estimation.report.reporter import (
     PoseSample,
@@ -24,7 +25,6 @@ from estimation.report.reporter import (
     read_tum_samples,
     replay_samples,
 )
-from estimation.report.session import SessionStats
 from flightkit.bus.keys import Keys
 from flightkit.clock import Clock, WallClock
 from flightkit.config import LabConfig, MocapSourceKind, load_section, load_toml

@@ -27,7 +27,7 @@ import numpy.typing as npt
 
 from flightkit.bus.cdr import CdrReader, CdrWriter
 from flightkit.errors import BusError
-from flightkit.frames import Transform
+from flightkit.frames import Transform, Vec3Tuple
 
 __all__ = [
     "MESSAGE_TYPES",
@@ -45,7 +45,6 @@ __all__ = [
     "schema_text",
 ]
 
-Vec3Tuple = tuple[float, float, float]
 QuatTuple = tuple[float, float, float, float]
 
 # --------------------------------------------------------------------------- schemas

@@ -55,14 +55,14 @@ def parse_stamp_ns(text: str) -> int:
     """Seconds written in decimal (``"1305031102.2159"``, ``"1.4037e+09"``) -> exact integer ns.
 
     Raises:
-        ValueError: not a finite decimal number.
+        DatasetError: not a finite decimal number.
     """
     try:
         value = Decimal(text)
     except InvalidOperation as exc:
-        raise ValueError(f"not a number: {text!r}") from exc
+        raise DatasetError(f"time {text!r} is not a number; write seconds in decimal, e.g. 1305031102.2159") from exc
     if not value.is_finite():
-        raise ValueError(f"not a finite number: {text!r}")
+        raise DatasetError(f"time {text!r} is not a finite number; write seconds in decimal, e.g. 1305031102.2159")
     return int((value * _NS_PER_S).to_integral_value())
 
 
@@ -340,7 +340,7 @@ def read_tum(path: str | os.PathLike[str], name: str | None = None) -> Trajector
         try:
             stamps.append(parse_stamp_ns(parts[0]))
             values.append([float(v) for v in parts[1:]])
-        except ValueError as exc:
+        except (ValueError, DatasetError) as exc:
             raise DatasetError(f"{p}:{lineno}: {exc}; every value must be a number") from exc
     if not stamps:
         raise DatasetError(f"trajectory file {p} holds no poses; is it empty or all comments?")
@@ -384,7 +384,7 @@ def read_kitti_times(path: str | os.PathLike[str]) -> npt.NDArray[np.int64]:
     for lineno, parts in _data_lines(p):
         try:
             stamps.append(parse_stamp_ns(parts[0]))
-        except ValueError as exc:
+        except DatasetError as exc:
             raise DatasetError(f"{p}:{lineno}: {exc}; times.txt holds one time in seconds per line") from exc
     return np.array(stamps, dtype=np.int64)
 

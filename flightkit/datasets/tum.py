@@ -131,7 +131,7 @@ def _read_list(path: Path) -> tuple[np.ndarray, list[Path]]:
             raise DatasetError(f"{path}:{lineno}: expected 'timestamp filename', got {line!r}")
         try:
             stamps.append(parse_stamp_ns(parts[0]))
-        except ValueError as exc:
+        except DatasetError as exc:
             raise DatasetError(f"{path}:{lineno}: {exc}; the first column is the time in seconds") from exc
         files.append(path.parent / parts[1])
     return np.array(stamps, dtype=np.int64), files

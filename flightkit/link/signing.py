@@ -18,7 +18,7 @@ import logging
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from flightkit.errors import ConfigError
+from flightkit.errors import ConfigError, LinkError
 
 if TYPE_CHECKING:
     from flightkit.link.mavlink.encoding import MavlinkMessage
@@ -53,9 +53,14 @@ class SigningSettings:
 
     def __post_init__(self) -> None:
         if len(self.key) != _KEY_LEN:
-            raise ValueError(f"a MAVLink signing key has {_KEY_LEN} bytes, got {len(self.key)}")
+            raise LinkError(
+                f"a MAVLink signing key has {_KEY_LEN} bytes, got {len(self.key)}; "
+                "decode link.signing_key_hex (64 hex digits) with parse_signing_key"
+            )
         if not 0 <= self.link_id <= 255:
-            raise ValueError(f"link_id must be 0-255, got {self.link_id}")
+            raise LinkError(
+                f"signing link_id must be 0-255, got {self.link_id}; pick a distinct id in that range per link",
+            )
 
     def __repr__(self) -> str:  # never print the key
         return f"SigningSettings(key=<{len(self.key)} bytes>, link_id={self.link_id})"

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from flightkit.clock import Clock, WallClock
+from flightkit.errors import MocapError
 from flightkit.mocap.base import MocapSource
 
 if TYPE_CHECKING:
@@ -67,7 +68,7 @@ async def forward_to_vehicle(
     from flightkit.link.base import ExternalPose, ExternalPoseKind
 
     if rate_hz <= 0:
-        raise ValueError(f"rate_hz must be positive, got {rate_hz}")
+        raise MocapError(f"forwarding rate_hz must be positive, got {rate_hz}; send poses at e.g. 30.0 Hz")
     clk: Clock = clock or getattr(source, "clock", None) or WallClock()
     kind = kind or ExternalPoseKind.VISION_POSITION_ESTIMATE
     st = stats if stats is not None else ForwardStats()

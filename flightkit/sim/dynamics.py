@@ -22,6 +22,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
+from flightkit.errors import SetpointError, SimError
 from flightkit.frames import Transform, wrap_angle_rad
 
 __all__ = ["DynamicsParams", "DynamicsState", "MotorState", "QuadDynamics"]
@@ -84,10 +85,10 @@ class DynamicsParams:
             "max_yaw_rate_rad_s",
         ):
             if not getattr(self, name) > 0.0:
-                raise ValueError(f"DynamicsParams.{name} must be > 0, got {getattr(self, name)}")
+                raise SimError(f"DynamicsParams.{name} must be > 0, got {getattr(self, name)}; give a positive value")
         for name in ("spinup_s", "thrust_ramp_s", "wind_gust_m_s", "pos_noise_m", "pos_wander_m", "drag_1_s"):
             if getattr(self, name) < 0.0:
-                raise ValueError(f"DynamicsParams.{name} must be >= 0, got {getattr(self, name)}")
+                raise SimError(f"DynamicsParams.{name} must be >= 0, got {getattr(self, name)}; give 0 (off) or more")
 
 
 @dataclass(frozen=True, slots=True)
@@ -172,7 +173,7 @@ class QuadDynamics:
         self._t = 0.0
         self._pos = np.array(pos_enu_m, dtype=np.float64).reshape(3)
         if self._pos[2] < 0.0:
-            raise ValueError(f"initial position is below the floor (z = {self._pos[2]:.3f} m); give z >= 0")
+            raise SimError(f"initial position is below the floor (z = {self._pos[2]:.3f} m); give z >= 0")
         self._vel = np.zeros(3)
         self._acc = np.zeros(3)
         self._yaw = wrap_angle_rad(float(yaw_rad))
@@ -233,7 +234,7 @@ class QuadDynamics:
         """
         v = np.asarray(vel_enu_m_s, dtype=np.float64).reshape(3)
         if not np.all(np.isfinite(v)):
-            raise ValueError(f"velocity command must be finite, got {v}")
+            raise SetpointError(f"velocity command must be finite, got {v} m/s; check the controller output for NaN")
         self._cmd_vel = v.copy()
         self._cmd_yaw = None if yaw_rad is None else wrap_angle_rad(float(yaw_rad))
         self._cmd_yaw_rate = 0.0 if yaw_rate_rad_s is None else float(yaw_rate_rad_s)
@@ -241,7 +242,7 @@ class QuadDynamics:
     def inject_gust(self, peak_enu_m_s: npt.ArrayLike, duration_s: float = 2.0) -> None:
         """Add a gust starting now: wind rises to ``peak_enu_m_s`` and falls back (1 - cos)."""
         if duration_s <= 0.0:
-            raise ValueError(f"gust duration must be > 0 s, got {duration_s}")
+            raise SimError(f"gust duration must be > 0 s, got {duration_s}; give a positive duration")
         self._gusts.append(_Gust(self._t, duration_s, np.asarray(peak_enu_m_s, dtype=np.float64).reshape(3)))
 
     def teleport(self, pos_enu_m: npt.ArrayLike, yaw_rad: float | None = None) -> None:
@@ -306,7 +307,7 @@ class QuadDynamics:
     def step(self, dt_s: float) -> None:
         """Advance the state by ``dt_s`` seconds (split internally into steps of at most 10 ms)."""
         if dt_s < 0.0:
-            raise ValueError(f"time cannot go backwards (dt = {dt_s})")
+            raise SimError(f"time cannot go backwards (dt = {dt_s} s); step by 0 or more")
         n = max(1, math.ceil(dt_s / 0.01 - 1e-9))
         h = dt_s / n
         for _ in range(n):

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from types import MappingProxyType
 
 from flightkit.config import Autopilot
+from flightkit.errors import SimError
 from flightkit.link.base import FlightMode
 from flightkit.link.modes import (
     ARDUPILOT_COPTER_MODES,
@@ -316,5 +317,5 @@ def personality_for(autopilot: Autopilot | str) -> Personality:
         try:
             autopilot = Autopilot(autopilot.lower())
         except ValueError:
-            raise ValueError(f"unknown autopilot {autopilot!r}; use 'px4' or 'ardupilot'") from None
+            raise SimError(f"unknown autopilot {autopilot!r}; use 'px4' or 'ardupilot'") from None
     return PX4 if autopilot is Autopilot.PX4 else ARDUPILOT

@@ -51,7 +51,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from flightkit.datasets.base import CameraIntrinsics, Frame, StereoRectification
 from flightkit.datasets.trajectory import Trajectory
-from flightkit.errors import DatasetError
+from flightkit.errors import DatasetError, SimError
 from flightkit.frames import Transform
 from flightkit.sim.camera import Scene, SimCamera
 
@@ -88,19 +88,25 @@ def quadrotor_attitude(accel_world_m_s2: npt.ArrayLike, yaw_rad: float, gravity_
     down by ``atan(a / g)``.
 
     Raises:
-        ValueError: the acceleration cancels gravity (free fall has no attitude).
+        SimError: the acceleration cancels gravity (free fall has no attitude).
     """
     a = np.asarray(accel_world_m_s2, dtype=np.float64).reshape(3)
     thrust = a + np.array([0.0, 0.0, gravity_m_s2])
     norm = float(np.linalg.norm(thrust))
     if norm < 1e-6 * gravity_m_s2:
-        raise ValueError(f"acceleration {a} m/s^2 cancels gravity; a quadrotor has no attitude in free fall")
+        raise SimError(
+            f"acceleration {a} m/s^2 cancels gravity; a quadrotor has no attitude in free fall: "
+            "keep the path's downward acceleration below g"
+        )
     z_b = thrust / norm
     x_c = np.array([math.cos(yaw_rad), math.sin(yaw_rad), 0.0])
     y_b = np.cross(z_b, x_c)
     y_norm = float(np.linalg.norm(y_b))
     if y_norm < 1e-9:
-        raise ValueError(f"thrust axis {z_b} is horizontal along the heading; the attitude is undefined")
+        raise SimError(
+            f"thrust axis {z_b} is horizontal along the heading; the attitude is undefined: "
+            "keep the path's horizontal acceleration below a few g"
+        )
     y_b /= y_norm
     x_b = np.cross(y_b, z_b)
     return Rotation.from_matrix(np.column_stack([x_b, y_b, z_b]))
@@ -161,17 +167,19 @@ def body_poses_along(
         One pose per frame, stamps strictly increasing.
 
     Raises:
-        ValueError: a non-positive rate, no duration for a callable, or an empty window.
+        SimError: a non-positive rate, no duration for a callable, or an empty window.
     """
     if not rate_hz > 0.0:
-        raise ValueError(f"rate_hz must be positive, got {rate_hz}")
+        raise SimError(f"rate_hz must be positive, got {rate_hz}; give a frame rate such as 30.0")
     fn, path_duration = _position_yaw(path)
     if duration_s is None:
         if path_duration is None:
-            raise ValueError("give duration_s for a path given as a callable (it has no .duration_s)")
+            raise SimError(f"the path {path!r} has no .duration_s; give duration_s for a path given as a callable")
         duration_s = path_duration - start_s
     if not duration_s >= 0.0:
-        raise ValueError(f"duration_s must not be negative, got {duration_s} (start_s {start_s})")
+        raise SimError(
+            f"duration_s must not be negative, got {duration_s} (start_s {start_s}); start earlier in the path",
+        )
     n = int(math.floor(duration_s * rate_hz + 1e-9)) + 1
     h = accel_window_s / 2.0
     poses: list[BodyPose] = []
@@ -215,12 +223,14 @@ class ImagingOptions:
 
     def __post_init__(self) -> None:
         if self.noise_std < 0.0 or self.depth_noise_m_per_m2 < 0.0 or self.exposure_s < 0.0:
-            raise ValueError(
+            raise SimError(
                 f"noise_std ({self.noise_std}), depth_noise_m_per_m2 ({self.depth_noise_m_per_m2}) and "
-                f"exposure_s ({self.exposure_s}) must not be negative"
+                f"exposure_s ({self.exposure_s}) must not be negative; give 0 (off) or more"
             )
         if self.blur_samples < 2:
-            raise ValueError(f"blur_samples must be at least 2, got {self.blur_samples}")
+            raise SimError(
+                f"blur_samples must be at least 2, got {self.blur_samples}; use 2 or more (or exposure_s = 0)",
+            )
 
     @property
     def blurred(self) -> bool:

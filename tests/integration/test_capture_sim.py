@@ -14,9 +14,9 @@ import pytest
 from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 
+from capture.bus_recorder import BusRecorder, recording_metadata
 from capture.config import CaptureConfig
 from capture.export import export_recording
-from capture.session import BusRecorder, recording_metadata
 from flightkit.bus.keys import Keys
 from flightkit.bus.msgs import Image, TFMessage
 from flightkit.bus.session import open_session

@@ -18,9 +18,9 @@ import pytest
 from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 
+from capture.bus_recorder import BusRecorder
 from capture.export import export_recording
 from capture.recorder import Compression, Recorder, StreamSample
-from capture.session import BusRecorder
 from capture.sources.mocap import MocapBridge
 from capture.sources.opencv import OpenCVCameraPublisher
 from capture.sources.replay import DatasetReplayPublisher, McapReplayPublisher

@@ -9,11 +9,11 @@ from pathlib import Path
 
 import pytest
 
+from estimation.report.link_session import SessionConfig
 from estimation.report.mapframe import MapFrame, MapFrameConfig
 from estimation.report.mapserver import MapServer, RobotState
 from estimation.report.relay import Faults, PtyRelay
 from estimation.report.reporter import PoseSample, Reporter
-from estimation.report.session import SessionConfig
 from estimation.report.transport import PortLost
 from flightkit.cli.main import main as cli_main
 from flightkit.errors import ProtocolError
@@ -42,7 +42,7 @@ class PoseLog:
         orig = server._on_event
 
         def hook(port: str, ev: object) -> None:
-            from estimation.report.session import PoseReceived
+            from estimation.report.link_session import PoseReceived
 
             if isinstance(ev, PoseReceived):
                 self.stamps.setdefault(ev.robot_id, []).append(ev.pose.stamp_us)

@@ -13,6 +13,7 @@ from flightkit.clock import (
     WallClock,
     sleep_until,
 )
+from flightkit.errors import SimError
 
 
 def test_clocks_satisfy_protocol() -> None:
@@ -31,9 +32,9 @@ def test_sim_clock_runs_faster_than_wall() -> None:
 
 
 def test_sim_clock_rejects_bad_speed() -> None:
-    with pytest.raises(ValueError):
+    with pytest.raises(SimError, match="speed"):
         SimClock(0.0)
-    with pytest.raises(ValueError):
+    with pytest.raises(SimError, match="speed"):
         SimClock(float("inf"))
 
 
@@ -79,7 +80,7 @@ def test_lockstep_blocking_sleep_from_thread() -> None:
     clock.advance(0.5)
     assert done.wait(2.0)
     t.join()
-    with pytest.raises(ValueError):
+    with pytest.raises(SimError, match="backwards"):
         clock.advance(-1.0)
 
 
@@ -212,5 +213,5 @@ def test_stall_limited_sleep_zero_still_yields() -> None:
 
 def test_sim_clock_rejects_bad_stall_limit() -> None:
     for bad in (0.0, -1.0, float("inf"), float("nan")):
-        with pytest.raises(ValueError, match="max_wall_step_s"):
+        with pytest.raises(SimError, match="max_wall_step_s"):
             SimClock(2.0, max_wall_step_s=bad)

@@ -38,8 +38,10 @@ def test_stamps_parse_exactly_to_nanoseconds() -> None:
     assert parse_stamp_ns("1305031102.2159") == 1_305_031_102_215_900_000
     assert parse_stamp_ns("1.403715278862139940e+09") == 1_403_715_278_862_139_940
     assert parse_stamp_ns("0.104499") == 104_499_000
-    with pytest.raises(ValueError):
+    with pytest.raises(DatasetError, match="'nan' is not a finite number"):
         parse_stamp_ns("nan")
+    with pytest.raises(DatasetError, match="'x1' is not a number"):
+        parse_stamp_ns("x1")
 
 
 def test_tum_and_kitti_files_round_trip(tmp_path: Path) -> None:

@@ -5,6 +5,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from flightkit import frames as F
+from flightkit.errors import TransformError
 from flightkit.frames import Transform
 
 RNG = np.random.default_rng(7)
@@ -90,9 +91,11 @@ def test_world_to_body_yaw() -> None:
 
 
 def test_bad_inputs_raise() -> None:
-    with pytest.raises(ValueError):
+    with pytest.raises(TransformError, match="3 elements"):
         Transform(translation=np.array([1.0, 2.0]))
-    with pytest.raises(ValueError):
+    with pytest.raises(TransformError, match="finite"):
         Transform(translation=np.array([1.0, np.nan, 0.0]))
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="last dimension of 3"):  # a TransformError is also a ValueError
         F.enu_to_ned([1.0, 2.0])
+    with pytest.raises(TransformError, match="4x4 or 3x4"):
+        Transform.from_matrix(np.eye(3))

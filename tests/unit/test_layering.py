@@ -33,14 +33,13 @@ PURE_MODULES = (
     "trajectories/hold.py",
     "trajectories/waypoints.py",
     "trajectories/takeoff.py",
-    "trajectories/land.py",
     "trajectories/patterns.py",
     "trajectories/controller.py",
     "trajectories/supervisor.py",
     "estimation/motion.py",
     "estimation/evaluation.py",
     "estimation/report/protocol.py",
-    "estimation/report/session.py",
+    "estimation/report/link_session.py",
 )
 
 

@@ -9,7 +9,7 @@ from flightkit.config import Autopilot, LinkConfig
 from flightkit.errors import LinkError
 from flightkit.link.base import VehicleLink
 from flightkit.link.mavlink import MavlinkLink
-from flightkit.link.mavsdk_link import MavsdkLink
+from flightkit.link.mavsdk import MavsdkLink
 
 
 def test_unconnected_backends_are_vehicle_links() -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
-from flightkit.errors import ConfigError
+from flightkit.errors import ConfigError, LinkError
 from flightkit.link.signing import (
     SIGNING_EPOCH_NS,
     SigningSettings,
@@ -31,8 +31,10 @@ def test_key_parsing() -> None:
 def test_settings_hide_the_key() -> None:
     s = SigningSettings(bytes(32), link_id=7)
     assert "00" not in repr(s) and "link_id=7" in repr(s)
-    with pytest.raises(ValueError):
+    with pytest.raises(LinkError, match="32 bytes, got 16"):
         SigningSettings(bytes(16))
+    with pytest.raises(LinkError, match="link_id must be 0-255, got 256"):
+        SigningSettings(bytes(32), link_id=256)
 
 
 def test_timestamp_units() -> None:

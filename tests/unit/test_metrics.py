@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from estimation.evaluation import ErrorStats, ape, evaluate, lab_errors, rpe, rpe_pairs, umeyama
-from estimation.timing import StageTimer, TimingTable
+from estimation.timing import TimingTable
 from flightkit.datasets.trajectory import Trajectory
 from flightkit.errors import EstimationError
 
@@ -166,27 +166,10 @@ def test_error_stats_match_numpy() -> None:
         ErrorStats.of([])
 
 
-def test_stage_timer_sums_repeated_stages_per_frame() -> None:
-    timer = StageTimer()
-    for _ in range(3):
-        with timer.frame():
-            timer.add("features", 2_000_000)
-            timer.add("features", 1_000_000)
-            timer.add("motion", 4_000_000)
-    # Within a frame, repeated samples of a stage add up to one per frame.
-    table = timer.table()
-    assert table.frames == 3 and [r.name for r in table.rows] == ["features", "motion", "total"]
-    assert table.row("features").count == 3 and table.row("features").mean_ms == pytest.approx(3.0)
-    assert table.row("motion").mean_ms == pytest.approx(4.0)
-    with timer.frame():
-        with timer.stage("features"):
-            pass
-        with timer.stage("features"):
-            pass
-    assert timer.table().row("features").count == 4 and timer.frames == 4
+def test_timing_table_from_stage_ms() -> None:
     t = TimingTable.from_stage_ms({"features": [1.0, 3.0], "3d": [], "total": [4.0, 6.0]})
     assert [r.name for r in t.rows] == ["features", "total"]
     assert t.row("features").share == pytest.approx(0.4) and t.fps == pytest.approx(200.0)
     assert "features" in t.format() and t.to_dict()["frames"] == 2
     with pytest.raises(EstimationError):
-        StageTimer().table()
+        TimingTable.from_stage_ms({"features": []})

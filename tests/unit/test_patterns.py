@@ -9,6 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from flightkit.errors import ConfigError, PlanError
 from trajectories.base import Pattern, trapezoid, trapezoid_duration_s
 from trajectories.patterns import (
     Circle,
@@ -236,7 +237,7 @@ def test_takeoff_land_hold_line() -> None:
     ln = Line((0, 0, 1), (1, 1, 1), 0.2, 0.2, yaw_rad=0.3, end_yaw_rad=-2.0)
     assert ln.reference(ln.duration_s).yaw_rad == pytest.approx(-2.0)
     assert ln.reference(ln.duration_s).pos_m == pytest.approx((1.0, 1.0, 1.0))
-    with pytest.raises(ValueError, match="not above"):
+    with pytest.raises(PlanError, match="takeoff: height_m: target height 0.5 m is not above"):
         Takeoff((0, 0, 1.0), 0.5)
 
 
@@ -267,14 +268,18 @@ def test_yaw_crosses_pi_smoothly_over_many_laps() -> None:
 
 
 def test_bad_arguments_raise() -> None:
-    with pytest.raises(ValueError, match="either period_s or speed_m_s"):
+    with pytest.raises(PlanError, match="either period_s or speed_m_s"):
         Circle(period_s=10.0, speed_m_s=1.0)
-    with pytest.raises(ValueError, match="radius"):
+    with pytest.raises(PlanError, match="circle: radius_m: radius must be positive, got 0.0 m; give a radius > 0") as e:
         Circle(radius_m=0.0, period_s=10.0)
-    with pytest.raises(ValueError, match="coincide"):
+    assert (e.value.pattern, e.value.key, e.value.value) == ("circle", "radius_m", 0.0)
+    assert isinstance(e.value, ConfigError)  # a plan's loader maps it to its file and key
+    with pytest.raises(PlanError, match="coincide"):
         Rectangle([(0, 0), (0, 0), (1, 1)], 1.0)
-    with pytest.raises(ValueError, match="return_to_start"):
+    with pytest.raises(PlanError, match="return_to_start"):
         Lawnmower((0, 0), (1, 1), 0.5, 1.0, laps=2, return_to_start=False)
+    with pytest.raises(PlanError, match="hold: duration_s"):
+        Hold((0, 0, 1), 0.0, 0.0)
 
 
 @settings(max_examples=200, deadline=None)

@@ -75,7 +75,7 @@ def test_defaults_and_tangent_alias() -> None:
         ({"pattern": {"kind": "waypoints", "points_m": [[0, 0, 1]]}}, r"pattern.points_m: needs 2"),
         (
             {"pattern": {"kind": "rectangle", "corners_m": [[0, 0], [0, 0], [1, 1]]}},
-            r"p.toml: pattern: .*coincide",
+            r"p.toml: pattern.corners_m: corners 0 and 1 coincide",
         ),
     ],
 )

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from flightkit.errors import SetpointError, SimError
 from flightkit.link.base import FlightMode
 from flightkit.sim.dynamics import DynamicsParams, MotorState, QuadDynamics
 from flightkit.sim.personality import ARDUPILOT, PX4, personality_for, px4_custom_mode
@@ -149,14 +150,14 @@ def test_extrapolated_pose() -> None:
 
 
 def test_invalid_input_is_rejected() -> None:
-    with pytest.raises(ValueError, match="below the floor"):
+    with pytest.raises(SimError, match="below the floor"):
         QuadDynamics(pos_enu_m=(0, 0, -1))
-    with pytest.raises(ValueError, match="velocity_time_constant_s"):
+    with pytest.raises(SimError, match="velocity_time_constant_s"):
         DynamicsParams(velocity_time_constant_s=0.0)
     d = QuadDynamics()
-    with pytest.raises(ValueError, match="finite"):
+    with pytest.raises(SetpointError, match="finite"):
         d.command((math.nan, 0, 0))
-    with pytest.raises(ValueError, match="backwards"):
+    with pytest.raises(SimError, match="backwards"):
         d.step(-0.1)
 
 
@@ -172,5 +173,5 @@ def test_personalities_encode_modes_like_the_firmware() -> None:
     assert ARDUPILOT.mode_of(5) is FlightMode.LOITER
     assert PX4.mode_of(12345) is None
     assert personality_for("ArduPilot") is ARDUPILOT
-    with pytest.raises(ValueError, match="unknown autopilot"):
+    with pytest.raises(SimError, match="unknown autopilot"):
         personality_for("betaflight")

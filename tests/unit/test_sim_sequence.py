@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 
 from flightkit.config import CameraConfig
 from flightkit.datasets.base import Sequence
-from flightkit.errors import DatasetError
+from flightkit.errors import DatasetError, SimError
 from flightkit.frames import Transform
 from flightkit.sim.camera import PinholeModel, Scene, SimCamera
 from flightkit.sim.sequence import (
@@ -73,7 +73,7 @@ def test_sideways_acceleration_rolls() -> None:
 
 
 def test_free_fall_has_no_attitude() -> None:
-    with pytest.raises(ValueError, match="free fall"):
+    with pytest.raises(SimError, match="free fall"):
         quadrotor_attitude([0.0, 0.0, -G], 0.0)
 
 
@@ -115,9 +115,9 @@ def test_circle_tilts_towards_the_centre_by_the_centripetal_acceleration() -> No
 
 
 def test_body_poses_reject_bad_arguments() -> None:
-    with pytest.raises(ValueError, match="rate_hz"):
+    with pytest.raises(SimError, match="rate_hz"):
         body_poses_along(_PatternLike(), 0.0)
-    with pytest.raises(ValueError, match="duration_s"):
+    with pytest.raises(SimError, match="duration_s"):
         body_poses_along(_line_path(0.0), 10.0)
     with pytest.raises(TypeError, match="reference"):
         body_poses_along(42, 10.0)
@@ -244,5 +244,5 @@ def test_bad_poses_are_clear_errors() -> None:
         SimSequence(cam, [], Transform())
     with pytest.raises(DatasetError, match="stamps must increase"):
         SimSequence(cam, [(10, Transform()), (10, Transform())], Transform())
-    with pytest.raises(ValueError, match="blur_samples"):
+    with pytest.raises(SimError, match="blur_samples"):
         ImagingOptions(blur_samples=1)

@@ -25,6 +25,7 @@ import numpy.typing as npt
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from flightkit.clock import Clock, WallClock
+from flightkit.errors import SimError
 from flightkit.frames import wrap_angle_rad
 from flightkit.link.base import FlightMode
 from flightkit.sim.autopilot.options import DEFAULT_STREAM_RATES_HZ, AutopilotOptions, parse_endpoint
@@ -119,7 +120,9 @@ class _AutopilotCore:
         self._mav = mavlink2.MAVLink(_SendFile(self), self.options.system_id, self.options.component_id)
         key = self.options.signing_key
         if key is not None and len(key) != 32:
-            raise ValueError(f"MAVLink signing key must be 32 bytes, got {len(key)}")
+            raise SimError(
+                f"MAVLink signing key must be 32 bytes, got {len(key)}; give 64 hex digits as the signing key",
+            )
         if key is not None:
             self._mav.signing.secret_key = key
             self._mav.signing.sign_outgoing = True
@@ -131,9 +134,9 @@ class _AutopilotCore:
         self._params: dict[str, float] = {n: float(s.default) for n, s in personality.params.items()}
         for name, value in self.options.params.items():
             if name not in self._params:
-                raise ValueError(
+                raise SimError(
                     f"unknown {personality.autopilot.value} parameter {name!r}; "
-                    f"known: {', '.join(self._param_names)}"
+                    f"use one of: {', '.join(self._param_names)}"
                 )
             self._params[name] = float(value)
 

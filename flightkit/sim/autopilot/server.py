@@ -15,7 +15,7 @@ import math
 import socket
 import threading
 
-from flightkit.errors import EndpointError
+from flightkit.errors import EndpointError, SimError
 from flightkit.sim.autopilot.commands import _AutopilotInbound
 from flightkit.sim.autopilot.core import _Client
 
@@ -46,7 +46,7 @@ class SimAutopilot(_AutopilotInbound):
     def bound_address(self) -> tuple[str, int]:
         """(host, port) of our socket; with ``udpin:...:0`` this is the port to connect to."""
         if self._bound is None:
-            raise RuntimeError("SimAutopilot is not started; call start() first")
+            raise SimError("SimAutopilot is not started, so it has no bound address; call start() (or enter it) first")
         return self._bound
 
     @property

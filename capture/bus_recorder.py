@@ -2,7 +2,7 @@
 
 ::
 
-    from capture.session import start_recording
+    from capture.bus_recorder import start_recording
     rec = start_recording("run.mcap", session=s, topics=["uav1/**"], lab_cfg=cfg)
     ...                        # fly
     report = rec.stop()        # finishes the file; RecordingReport with counts and gaps

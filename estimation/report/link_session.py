@@ -34,7 +34,7 @@ import random
 from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 
-from flightkit.errors import ProtocolError
+from flightkit.errors import ConfigError, ProtocolError
 
 from .messages import (
     RELIABLE_TYPES,
@@ -122,12 +122,21 @@ class SessionConfig:
 
     def __post_init__(self) -> None:
         if self.link_timeout_s <= self.heartbeat_s:
-            raise ValueError(
-                f"link_timeout_s ({self.link_timeout_s}) must exceed heartbeat_s ({self.heartbeat_s}); "
-                "use at least three heartbeats"
+            raise ConfigError(
+                "<SessionConfig>",
+                "link_timeout_s",
+                f"{self.link_timeout_s} s must exceed heartbeat_s ({self.heartbeat_s} s)",
+                "make link_timeout_s at least three heartbeats",
+                self.link_timeout_s,
             )
         if not 1 <= self.window <= 1024:
-            raise ValueError(f"window {self.window} must be 1..1024")
+            raise ConfigError(
+                "<SessionConfig>",
+                "window",
+                f"{self.window} is out of range",
+                "give 1..1024",
+                self.window,
+            )
 
 
 # ----------------------------------------------------------------------------- events

@@ -11,8 +11,7 @@ from dataclasses import dataclass, field
 
 import pytest
 
-from estimation.report.messages import GoodbyeReason, NavOrder, PoseUpdate, Segment
-from estimation.report.session import (
+from estimation.report.link_session import (
     Connected,
     Delivered,
     Event,
@@ -26,6 +25,7 @@ from estimation.report.session import (
     SessionConfig,
     SessionState,
 )
+from estimation.report.messages import GoodbyeReason, NavOrder, PoseUpdate, Segment
 from flightkit.errors import ProtocolError
 
 
