@@ -35,6 +35,9 @@ def register(sub: Any) -> None:
     p.add_argument("--backend", choices=["pymavlink", "mavsdk"], help="MAVLink library (default: config)")
     p.add_argument("--short", action="store_true", help="only take off to 1.5 m, hold 5 s and land")
     p.add_argument("--closed-loop", action="store_true", help="fly the circle on VO fused by the autopilot")
+    p.add_argument(
+        "--fleet", action="store_true", help="three vehicles on one circle, recorded (examples/fleet_circle.toml)"
+    )
     p.add_argument("--no-camera", action="store_true", help="skip the camera, recording of images and VO")
     p.add_argument("--method", default="rgbd-pnp", help="VO method for step 5 (default rgbd-pnp)")
     p.set_defaults(func=run)
@@ -64,6 +67,8 @@ def run(args: argparse.Namespace) -> int:
     from flightkit.apps.flight import load_plan
 
     out = Path(args.out)
+    if args.fleet:
+        return _run_fleet(args, out)
     cfg = _lab_config(args)
     plan = short_plan() if args.short else load_plan(Path(args.plan) if args.plan else _REPO_EXAMPLES / "circle.toml")
     if args.closed_loop:
@@ -99,4 +104,28 @@ def run(args: argparse.Namespace) -> int:
         print(f"      {len(vo)} frames, {vo.fps:.0f} frames/s of processing ({vo.wall_s:.1f} s with decoding)")
     _say("6/6", f"mapping server map: {result.map_png}")
     _say("done", f"flight {result.summary.outcome}; everything is in {out}/")
+    return 0 if result.ok else 1
+
+
+def _run_fleet(args: argparse.Namespace, out: Path) -> int:
+    from flightkit.apps.fleet import load_fleet_plan
+    from flightkit.apps.fleet_demo import fleet_demo_config, run_fleet_demo
+    from flightkit.config import load_config
+
+    path = Path(args.config) if args.config else _REPO_EXAMPLES / "lab_sim.toml"
+    cfg = fleet_demo_config(load_config(path) if path.is_file() else load_config(), args.speed)
+    fplan = load_fleet_plan(Path(args.plan) if args.plan else _REPO_EXAMPLES / "fleet_circle.toml")
+    last: dict[str, float] = {}
+
+    def status(name: str, s: Any) -> None:
+        now = time.monotonic()
+        if now - last.get(name, 0.0) >= 2.0:
+            last[name] = now
+            print(f"      {name:>5} {s.line()}", flush=True)
+
+    result = asyncio.run(run_fleet_demo(cfg, fplan, out, say=_say, on_status=status))
+    print(result.flight.format_table())
+    if result.recording_error:
+        _say("4/4", f"recording stopped early: {result.recording_error}")
+    _say("done", f"fleet {result.flight.outcome}; everything is in {out}/")
     return 0 if result.ok else 1

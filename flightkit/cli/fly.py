@@ -46,7 +46,8 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("--backend", choices=["pymavlink", "mavsdk"], default=None, help="MAVLink library")
     p.add_argument(
-        "--log", default=None, help="flight log file (default: flightlogs/<plan>-<time>.csv; a fleet: a folder)"
+        "--log", default=None,
+        help="flight log file (default: flightlogs/<plan>-<time>.csv; a fleet: a folder, flightlogs/<plan>-<time>/)",
     )
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("--plot", action="store_true", help="write PNG plots of the flight log at the end")
@@ -100,6 +101,7 @@ def _run_fleet(args: argparse.Namespace) -> int:
     """A fleet plan: one status line per vehicle, a summary table per vehicle and the fleet's figures."""
     import asyncio
     import time
+    from pathlib import Path
 
     from flightkit.apps.fleet import fly_fleet, load_fleet_plan
     from flightkit.apps.flight import Status, lab_with_overrides
@@ -121,7 +123,9 @@ def _run_fleet(args: argparse.Namespace) -> int:
             shown[name] = now
             print(f"{name:>6}  {s.line()}", file=sys.stderr, flush=True)
 
-    log_dir = args.log or (fplan.plan.settings.log_dir or "flightlogs")
+    log_dir = args.log or str(
+        Path(fplan.plan.settings.log_dir or "flightlogs") / f"{fplan.name}-{time.strftime('%Y%m%d-%H%M%S')}"
+    )
     result = asyncio.run(
         fly_fleet(fplan, lab, sim=sim, speed=args.speed, arm=args.arm, log_dir=log_dir, on_status=on_status)
     )
