@@ -119,8 +119,18 @@ class Quality(enum.IntEnum):
     INIT = 0  #: the start pose: the first keyframe, or held while an RGB-D method waits for depth
     GOOD = 1  #: estimate with enough inliers
     WEAK = 2  #: estimate accepted, but with few inliers (< 2 x min_inliers)
-    PREDICTED = 3  #: estimate failed or was implausible; constant-velocity prediction used
+    PREDICTED = 3  #: not estimated (failed or implausible): the constant-velocity prediction is kept
     FALLBACK = 4  #: tracking failed; ORB matching against the keyframe recovered the pose
+
+    @property
+    def estimated(self) -> bool:
+        """The pose was measured from the images (GOOD, WEAK or FALLBACK)."""
+        return self in (Quality.GOOD, Quality.WEAK, Quality.FALLBACK)
+
+
+MAX_FAILED_FRACTION = 0.5
+"""A run in which the motion of more than this fraction of the frames could not be estimated
+is an error (:meth:`VoResult.check`)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -265,9 +275,9 @@ class VoOptions:
             most of the threshold count less. Per-step error (RPE) 12-19 % lower on the synthetic
             patterns, 7-Scenes ATE 0.021 -> 0.016 m at 320x240 (docs/estimation-log.md,
             "seventh pass, accuracy"); 0: two plain least-squares refits.
-        flow_depth: flow with stereo (no depth image): ``"altitude"`` (one depth for all
-            points, ``Z = f B / d`` from row-consistent ORB matches: a camera looking down at
-            flat ground) or ``"stereo"`` (each point's own depth by sparse stereo; any scene).
+        flow_depth: flow with stereo (no depth image): ``"stereo"`` (each point's own depth by
+            sparse stereo; any scene) or ``"altitude"`` (one depth for all points, ``Z = f B / d``
+            from row-consistent ORB matches: only a camera looking straight down at flat ground).
         altitude_every: flow with stereo: recompute the altitude every N frames.
         seed: RANSAC random seed (repeatable runs).
     """
@@ -317,7 +327,7 @@ class VoOptions:
     ba_window: int = 0
     flow_threshold_px: float = 1.0
     flow_robust_iters: int = 3
-    flow_depth: str = "altitude"
+    flow_depth: str = "stereo"
     flow_ref_px: float = 15.0
     flow_polish: bool = True
     altitude_every: int = 5
@@ -480,6 +490,38 @@ class VoResult:
             path, self.trajectory(frame), header=f"flightkit vo {self.method} on {self.sequence} ({frame})"
         )
 
+    @property
+    def n_failed(self) -> int:
+        """Frames after the first whose motion was not estimated: predicted (``Quality.PREDICTED``)
+        or held at the start pose (``Quality.INIT`` while waiting for depth)."""
+        q = self.quality[1:]
+        return int(np.count_nonzero((q == Quality.PREDICTED) | (q == Quality.INIT)))
+
+    @property
+    def failed_fraction(self) -> float:
+        """:attr:`n_failed` over the frames after the first (0 for a single frame)."""
+        return self.n_failed / (len(self) - 1) if len(self) > 1 else 0.0
+
+    def failure_message(self) -> str:
+        """One sentence: how many frames were not estimated, and what that means."""
+        return (
+            f"{self.method} could not estimate the motion of {self.n_failed} of {len(self) - 1} frames of "
+            f"{self.sequence} ({100.0 * self.failed_fraction:.0f} %); those poses are the constant-velocity "
+            "prediction, not measurements"
+        )
+
+    def check(self, max_failed_fraction: float = MAX_FAILED_FRACTION) -> None:
+        """Raise when the motion of most of the sequence could not be estimated.
+
+        Raises:
+            EstimationError: more than ``max_failed_fraction`` of the frames were not estimated.
+        """
+        if self.failed_fraction > max_failed_fraction:
+            raise EstimationError(
+                f"{self.failure_message()}: the method does not suit this sequence or sensor "
+                "(docs/estimation.md, 'When VO fails')"
+            )
+
     def summary(self) -> dict[str, float]:
         """Mean per-stage milliseconds and frames/s."""
         out = {f"{k}_ms": float(np.mean(v)) if len(v) else 0.0 for k, v in self.stage_ms.items()}
@@ -607,6 +649,7 @@ class VisualOdometry:
         # Flow state
         self.flow_ref: _FlowRef | None = None
         self.altitude_m = math.nan
+        self._warned_altitude = False
         # Local BA window: list of (T_world_kf, ids, px_undistorted, disparity_px)
         self.ba_window: list[tuple[F64, npt.NDArray[np.int64], F64, F64]] = []
         self.ba_baseline_m = float(baseline_m) if baseline_m else 0.1  # virtual baseline for depth
@@ -1480,6 +1523,15 @@ class VisualOdometry:
             z, _ = stereo_altitude_m(gray, right_gray, self.rig.fx, self.rig.baseline_m, self.orb)
             if math.isfinite(z) and o.min_depth_m <= z <= o.max_depth_m:
                 self.altitude_m = z
+            elif not math.isfinite(self.altitude_m) and not self._warned_altitude:
+                self._warned_altitude = True
+                logger.warning(
+                    "flow: no stereo altitude in %.1f-%.0f m from this pair (got %.2f m); the motion cannot be "
+                    "estimated until there is one (flow_depth='altitude' needs a camera looking down at flat ground)",
+                    o.min_depth_m,
+                    o.max_depth_m,
+                    z,
+                )
         timer.lap("track")
         if self.flow_ref is None:
             self._flow_new_ref(stamp_ns, gray, right_gray, depth_m, np.empty((0, 2), np.float32), np.empty((0, 2)))
@@ -1731,7 +1783,9 @@ def run_vo(
         on_pose: called with every :class:`FramePose` (hook for live publishing).
 
     Returns:
-        :class:`VoResult`. Blocks until the sequence is processed.
+        :class:`VoResult`. Blocks until the sequence is processed. Frames whose motion could
+        not be estimated are flagged in ``quality`` and counted in a warning (logged);
+        :meth:`VoResult.check` raises when they are most of the run.
 
     Raises:
         EstimationError: unknown method, or the sequence lacks depth/stereo for it.
@@ -1800,7 +1854,10 @@ def run_vo(
             raise EstimationError(
                 f"none of the {total} frames of {sequence.name} has a {part} image; method {m.value!r} needs one"
             )
-    return collect_result(poses, m.value, sequence.name, wall, (prep.intrinsics.width, prep.intrinsics.height))
+    result = collect_result(poses, m.value, sequence.name, wall, (prep.intrinsics.width, prep.intrinsics.height))
+    if result.n_failed:
+        logger.warning("%s", result.failure_message())
+    return result
 
 
 def collect_result(poses: list[FramePose], method: str, name: str, wall_s: float, size: tuple[int, int]) -> VoResult:

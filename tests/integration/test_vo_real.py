@@ -177,10 +177,10 @@ def test_flow_with_per_point_stereo_depth_handles_a_forward_camera() -> None:
     """The altitude model (one depth) cannot explain a road scene; per-point stereo depth can."""
     seq = open_sequence(SHARED_DATA / "kitti06_stereo")
     gt = seq.groundtruth()
-    per_point = run_vo(
-        seq, "flow", size=(320, 240), options=VoOptions(flow_depth="stereo"), init_from_groundtruth=True
+    per_point = run_vo(seq, "flow", size=(320, 240), options=VoOptions(flow_depth="stereo"), init_from_groundtruth=True)
+    altitude = run_vo(
+        seq, "flow", size=(320, 240), options=VoOptions(flow_depth="altitude"), init_from_groundtruth=True
     )
-    altitude = run_vo(seq, "flow", size=(320, 240), init_from_groundtruth=True)
     ate_pp = ape(per_point.trajectory(), gt).translation.rmse
     ate_alt = ape(altitude.trajectory(), gt).translation.rmse
     # measured 0.13 m over 59.9 m (1.18 m before the reprojection polish of the first-order
