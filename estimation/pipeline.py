@@ -135,150 +135,56 @@ is an error (:meth:`VoResult.check`)."""
 
 @dataclass(frozen=True, slots=True)
 class VoOptions:
-    """Tuning of the pipelines (defaults suit 320x240 to 1280x720 at 10-60 Hz).
+    """Tuning of the pipelines (defaults suit 320x240 to 1280x720 at 10-60 Hz). How each default
+    was chosen, with measurements: docs/estimation-log.md, "VoOptions: why each default".
 
     Attributes:
         max_features: corners kept per keyframe.
-        cell_px: grid cell of the corner detector (0: chosen from image size and budget).
-        fast_threshold: FAST threshold.
-        klt_win_px, klt_levels: LK window and pyramid levels (0: 9 px up to 400 px wide,
-            else 11 px; None: 3 levels). LK's cost grows with the window's area (9 px costs
-            0.6x of 11 px) and is about the same on every level; 3 levels reach ~30 px of
-            motion without a prior (2 levels lost tracks beyond ~10 px at 9 px).
-        klt_back_levels: pyramid levels of the backward (checking) pass of the tracker (at
-            most ``klt_levels``); it starts at the answer, so it needs no coarse levels.
-        klt_iters: LK iterations per pyramid level at most (each also stops on a 0.03 px step).
-        stereo_win_px: LK window of the left-right (disparity) search (0: the tracking window).
-        fb_max_px: forward-backward tolerance of tracks.
-        klt_trust_prior_px: the RGB-D methods with a motion prior (from the second step on): a
-            track that ends within this distance of its predicted position (the keyframe point
-            projected with the constant-velocity motion) skips the backward check; only the
-            others are tracked back (0: all are). The prior is evidence of its own, and the
-            prior-guided fits (``pnp_prior_*``, ``essential_prior_*``, ``kabsch_prior_*``) drop
-            what does not fit the pose. 7-Scenes at 320x240: the backward pass ran on 2-25 % of
-            the tracks. rgbd-essential and rgbd-kabsch since 2026-11-22 (tenth pass of
-            docs/estimation-log.md): 0.94-1.24x (median 1.13x) the frames per CPU second on
-            the synthetic patterns and 7-Scenes, per-step errors within 3 %, ATE lower on 12
-            of 16 runs. Not applied to stereo (KITTI not re-measured).
+        cell_px: grid cell of the corner detector, px (0: from the image size and the budget).
+        fast_threshold: FAST threshold (grey levels).
+        klt_win_px, klt_levels: LK window, px (0: 9 up to 400 px wide, else 11); levels (None: 3).
+        klt_back_levels: pyramid levels of the backward (checking) LK pass (at most ``klt_levels``).
+        klt_iters: LK iterations per pyramid level at most.
+        stereo_win_px: LK window of the left-right disparity search, px (0: the tracking window).
+        fb_max_px: forward-backward tolerance of tracks, px.
+        klt_trust_prior_px: RGB-D: tracks within this of their prediction skip the backward check.
         pnp_method: ``"iterative"``, ``"epnp"`` or ``"sqpnp"``: the fit on all inliers.
-        pnp_kernel: the solver of PnP RANSAC's minimal samples: None (``pnp_method`` itself,
-            OpenCV's default), ``"ap3p"`` or ``"p3p"`` (4 points; RANSAC alone ~2.5x cheaper,
-            0.3 vs 0.8 ms for 200 points, but no faster end to end within this machine's
-            noise, and KITTI's ATE spread was wider).
-        reproj_px: PnP RANSAC threshold.
-        pnp_prior_gate_px, pnp_prior_min_fraction: rgbd-pnp skips RANSAC when the
-            constant-velocity prediction explains the tracks: when at least
-            ``pnp_prior_min_fraction`` of them reproject within ``pnp_prior_gate_px`` of the
-            prediction, SQPnP (global, no starting point) fits those, the inliers are the
-            tracks within ``reproj_px`` of the result, and if they are still that fraction the
-            pose goes to the usual depth polish; else RANSAC as before (0: always RANSAC).
-            RANSAC found 96-100 % inliers on every RGB-D sequence here, so its hypotheses were
-            wasted work (0.7-1 ms a frame at 320x240). A Gauss-Newton fit started at the
-            prediction instead of SQPnP diverged on the synthetic floor (its flat valley keeps
-            the start's error, which the velocity prior then doubles). Stereo keeps RANSAC
-            (KITTI's ATE rose 0.070 to 0.078 m with it).
+        pnp_kernel: PnP RANSAC's minimal solver: None (``pnp_method``), ``"ap3p"`` or ``"p3p"``.
+        reproj_px: PnP RANSAC and inlier threshold, px.
+        pnp_prior_gate_px, pnp_prior_min_fraction: rgbd-pnp skips RANSAC when this fraction of the
+            tracks lies within the gate (px) of the prediction (0: always RANSAC).
         inliers: ``"ransac"`` or ``"rigidity"`` (stereo: max-clique of rigid pairs first).
         kabsch_threshold_m: rgbd-kabsch inlier threshold at 1 m (grows with depth squared).
-        kabsch_polish: rgbd-kabsch: polish the rigid fit like PnP's pose (reprojection plus
-            this frame's depth, ``refine_with_depth`` must be on) and fuse the depth (the
-            per-step error halved on the synthetic sequences and the 7-Scenes ATE fell from
-            0.019 to 0.006 m; False: the bare 3D-3D fit).
-        kabsch_first_batch: rgbd-kabsch: hypotheses in RANSAC's first batch (then 64 per
-            batch). The tracks here are 96-100 % inliers, so two draws reach the 0.999
-            confidence and 56 of a first batch of 64 were wasted (a 64 x N x 3 residual
-            tensor and 64 SVDs every frame); 8 gave bit-identical trajectories on 7-Scenes,
-            the TUM pairs and the synthetic patterns, 1.3-1.8x faster.
-        kabsch_prior_gate, kabsch_prior_min_fraction: rgbd-kabsch skips RANSAC when the
-            constant-velocity prediction explains the 3D-3D pairs: when at least
-            ``kabsch_prior_min_fraction`` of them lie within ``kabsch_prior_gate`` times the
-            inlier threshold of the predicted motion, Kabsch fits those and the inliers are
-            re-selected as after RANSAC (:func:`~estimation.motion.rigid_from_prior`); else
-            RANSAC (0: always RANSAC). Taken on every step but the first on 7-Scenes and the
-            synthetic patterns, with trajectories identical bit for bit (RANSAC's re-selection
-            ends on the same inliers); 1.14-1.23x the frames per CPU second (2026-11-22).
-        essential_threshold_px: epipolar RANSAC threshold.
-        essential_min_parallax_px: below this median image motion since the keyframe the
-            essential matrix is ill-conditioned; ``rgbd-essential`` then solves the step by
-            PnP on the same tracks (and keeps the keyframe until the parallax is there).
-        essential_cheirality: how rgbd-essential picks the motion among the essential
-            matrix's four: ``"depth"`` (the rotation whose metric motion, scale from the
-            keyframe depth, reprojects most keyframe points;
-            :func:`~estimation.motion.pose_from_essential`) or ``"opencv"`` (``recoverPose``,
-            the code before 2026-11-22: its triangulation drops points beyond 50 baselines, so
-            on 7-Scenes 31 of 49 essential matrices were discarded and a PnP RANSAC ran).
-        essential_prior_gate_px, essential_prior_min_fraction, essential_prior_iterations:
-            rgbd-essential skips the 5-point RANSAC when the constant-velocity prediction
-            explains the tracks: when at least ``essential_prior_min_fraction`` of them lie
-            within ``essential_prior_gate_px`` (Sampson distance) of the predicted epipolar
-            geometry, those are fitted by Gauss-Newton/LM on the Sampson distance (5 DoF,
-            ``essential_prior_iterations`` steps, started at the prediction), the inliers are
-            the tracks within ``essential_threshold_px`` of the result, and the metric scale
-            comes from depth as after RANSAC
-            (:func:`~estimation.motion.essential_from_prior`); else RANSAC (0: always RANSAC).
-            Taken on 47-48 of 49 steps on 7-Scenes and 145-163 of 180-210 on the synthetic
-            patterns; more iterations measured no better (the reprojection fit that follows
-            converges from one step).
-        essential_pnp_prior: rgbd-essential, steps with too little parallax for the essential
-            matrix (or where it fails): rgbd-pnp's prior-guided PnP (SQPnP on the tracks the
-            prediction explains, ``pnp_prior_*``) before PnP RANSAC. Off: measured twice
-            (2026-11-21 and -22) with mixed ATE (rectangle 0.0038 -> 0.0042 m, lawnmower
-            0.0044 -> 0.0040 m) and no clear speed gain (34-53 steps of 180-210).
-        min_inliers: fewer inliers -> the estimate is rejected.
-        max_speed_m_s, max_rate_rad_s: sanity limits of one step.
-        min_depth_m, max_depth_m: accepted depth range (stereo and depth images).
-        init_min_depth_fraction: the RGB-D methods make their first keyframe only once at least
-            this fraction of the depth image lies in that range; until then every frame gets
-            the start pose, flagged ``INIT``. For a start on the ground (a camera a few
-            centimetres above the floor sees nothing in range before take-off): 0.5 gave the
-            right rotation at lift-off (demo flight: 1.9 instead of 3.1 degrees RMSE), but the
-            lift-off the camera could not see stays as a position offset (0.19 instead of
-            0.15 m RMSE without alignment; equal after alignment). 0 (default): start at the
-            first frame.
-        max_depth_baselines: stereo points farther than this many baselines are not used
-            (depth error grows with the square of range; ORB-SLAM calls points within 35-40
-            baselines "close"; 60 measured best on KITTI, trading translation for rotation).
-        min_disparity_px: stereo points with a smaller disparity are not used (their depth
-            is too uncertain for PnP: 0.25 px of disparity noise is 8 % of depth at 3 px).
-        refine_with_depth: polish PnP poses on the current frame's depth too (stereo
-            disparity or depth image), :func:`~estimation.motion.refine_pose`.
-        fuse_depth: fuse each frame's depth measurement of tracked points into their 3D
-            estimate (inverse variance, sigma_z ~ z^2), so depth improves while a point is
-            tracked and approaches; kept points carry it into the next keyframe.
-        stereo_fb_check: also check left-right stereo matches right-to-left (else the row
-            and disparity-range checks alone reject bad matches).
-        orb_fallback: match ORB against the keyframe when tracking fails.
-        keyframes: the keyframe policy.
-        parallax_ref_width_px: rgbd-pnp and rgbd-essential on images narrower than this: the
-            keyframe parallax is scaled to this width, so keyframes come after the same angle
-            of view as at this width (at 320 px, 25 px of parallax was twice the angle of 640
-            px; 0: raw pixels). It lowered rgbd-pnp's ATE on every sequence; rgbd-essential's
-            rose on 7-Scenes with the 5-point RANSAC alone, and fell on 7-Scenes and the three
-            synthetic patterns once the prior-guided essential matrix and the depth cheirality
-            were there (2026-11-22). Not rgbd-kabsch (the circle's ATE rose).
+        kabsch_polish: rgbd-kabsch: polish the rigid fit like PnP's pose and fuse the depth.
+        kabsch_first_batch: rgbd-kabsch: hypotheses in RANSAC's first batch (then 64 per batch).
+        kabsch_prior_gate, kabsch_prior_min_fraction: rgbd-kabsch skips RANSAC when the prediction
+            explains this fraction of the pairs (gate in inlier thresholds; 0: always RANSAC).
+        essential_threshold_px: epipolar (Sampson) inlier threshold, px.
+        essential_min_parallax_px: rgbd-essential solves by PnP below this median parallax, px.
+        essential_cheirality: rgbd-essential's pick of the four motions: ``"depth"`` or ``"opencv"``.
+        essential_prior_gate_px, essential_prior_min_fraction, essential_prior_iterations: rgbd-essential
+            refines the prediction (Sampson LM) instead of RANSAC when it explains this fraction.
+        essential_pnp_prior: rgbd-essential's PnP steps try the prior-guided PnP before RANSAC.
+        min_inliers: fewer inliers -> the estimate is rejected (the frame is ``PREDICTED``).
+        max_speed_m_s, max_rate_rad_s: sanity limits of one step (faster -> ``PREDICTED``).
+        min_depth_m, max_depth_m: accepted depth range (stereo and depth images), m.
+        init_min_depth_fraction: RGB-D: hold the start pose (``INIT``) until this fraction of the
+            depth image is in range (0: start at once).
+        max_depth_baselines: stereo points farther than this many baselines are not used.
+        min_disparity_px: stereo points with a smaller disparity are not used, px.
+        refine_with_depth: polish poses on the current frame's depth too (``motion.refine_pose``).
+        fuse_depth: fuse each frame's depth of tracked points into their 3D estimates.
+        stereo_fb_check: also check left-right stereo matches right-to-left.
+        orb_fallback: match ORB against the keyframe when tracking fails (``FALLBACK``).
+        keyframes: the keyframe policy (:class:`~estimation.keyframes.KeyframePolicy`).
+        parallax_ref_width_px: rgbd-pnp/-essential on narrower images: parallax scaled to this width.
         ba_window: local bundle adjustment over this many keyframes (0: off).
-        flow_threshold_px: flow RANSAC threshold (pixels of image motion since the reference).
-        flow_ref_px: flow keeps tracking from one reference frame until its points have moved
-            this far (median, pixels), fewer than half of them remain or an estimate fails;
-            the velocity is then the mean over the interval since the reference. LK errs by
-            ~0.01 px per call with the same sign from frame to frame (measured on the synthetic
-            rectangle: +1 % of a 0.8 px step, every step), so tracking from the previous frame
-            (0) integrates that bias into a drift of 1-3 % of the path. Measured ATE, bench runs
-            before and after: 7-Scenes 15.5 -> 7.9 mm (320x240), 8.8 -> 8.7 mm (640x480);
-            synthetic patterns in docs/estimation-log.md, "ninth pass".
-        flow_polish: flow: polish the motion since the reference on the reprojection of the
-            reference points (``estimation.flow.polish_motion``, exact for any motion) instead
-            of integrating the first-order velocity model alone, whose error over several
-            frames showed as a 2-5 % scale error on the lawnmower.
-        flow_robust_iters: flow: reweighted (Cauchy, scale half of ``flow_threshold_px``)
-            refits of the velocity after RANSAC's least-squares refit
-            (``estimation.flow.velocity_ransac``, ``robust_iters``): tracks that disagree by
-            most of the threshold count less. Per-step error (RPE) 12-19 % lower on the synthetic
-            patterns, 7-Scenes ATE 0.021 -> 0.016 m at 320x240 (docs/estimation-log.md,
-            "seventh pass, accuracy"); 0: two plain least-squares refits.
-        flow_depth: flow with stereo (no depth image): ``"stereo"`` (each point's own depth by
-            sparse stereo; any scene) or ``"altitude"`` (one depth for all points, ``Z = f B / d``
-            from row-consistent ORB matches: only a camera looking straight down at flat ground).
-        altitude_every: flow with stereo: recompute the altitude every N frames.
+        flow_threshold_px: flow RANSAC threshold, px of image motion since the reference.
+        flow_ref_px: flow's reference moves on once its points moved this far (median px; 0: always).
+        flow_polish: flow: polish the motion since the reference on its points' reprojection.
+        flow_robust_iters: flow: Cauchy-reweighted refits of the velocity after RANSAC.
+        flow_depth: flow on stereo: ``"stereo"`` (each point's depth) or ``"altitude"`` (one, looking down).
+        altitude_every: flow, ``flow_depth="altitude"``: recompute the altitude every N frames.
         seed: RANSAC random seed (repeatable runs).
     """
 
