@@ -48,14 +48,12 @@ Frames: camera frames are OpenCV; the world frame is the first camera's unless
 
 from __future__ import annotations
 
-import enum
 import logging
 import math
 import time
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from pathlib import Path
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import cv2
@@ -63,9 +61,9 @@ import numpy as np
 import numpy.typing as npt
 
 from estimation import _kernels
-from estimation.features import DescriptorExtractor, GridDetector, as_gray, shi_tomasi
-from estimation.flow import integrate_velocity, polish_motion, stereo_altitude_m, track_klt, velocity_ransac
-from estimation.keyframes import KeyframePolicy
+from estimation.features import DescriptorExtractor, GridDetector, as_gray
+from estimation.flow import track_klt
+from estimation.flow_vo import FlowEstimator
 from estimation.matching import match_descriptors, match_stereo_rows
 from estimation.motion import (
     Motion,
@@ -82,377 +80,36 @@ from estimation.motion import (
     rotation_angle_rad,
 )
 from estimation.stereo import StereoRig, sparse_disparity, triangulate
+from estimation.vo_options import Method, VoOptions
+from estimation.vo_result import MAX_FAILED_FRACTION, STAGES, FramePose, FrameTimer, Quality, VoResult, collect_result
 from flightkit.errors import EstimationError
 from flightkit.frames import Transform
 
 if TYPE_CHECKING:
     from flightkit.datasets.base import CameraIntrinsics, Frame, Sequence
-    from flightkit.datasets.trajectory import Trajectory
 
-__all__ = ["STAGES", "FramePose", "Method", "Quality", "VisualOdometry", "VoOptions", "VoResult", "run_vo"]
+__all__ = [
+    "MAX_FAILED_FRACTION",
+    "STAGES",
+    "FramePose",
+    "FramePreparer",
+    "Method",
+    "Quality",
+    "VisualOdometry",
+    "VoOptions",
+    "VoResult",
+    "collect_result",
+    "run_vo",
+    "warm_up",
+]
 
 logger = logging.getLogger(__name__)
 
 F64 = npt.NDArray[np.float64]
 F32 = npt.NDArray[np.float32]
 
-STAGES = ("track", "motion", "keyframe", "ba", "total")
-"""Per-frame timing stages, milliseconds: front-end tracking (pyramid + LK), motion
-estimation (incl. fallback), keyframe creation (detection + 3D), bundle adjustment, total."""
-
-
-class Method(enum.StrEnum):
-    RGBD_PNP = "rgbd-pnp"
-    RGBD_ESSENTIAL = "rgbd-essential"
-    RGBD_KABSCH = "rgbd-kabsch"
-    STEREO = "stereo"
-    FLOW = "flow"
-
-    @property
-    def needs_depth(self) -> bool:
-        return self in (Method.RGBD_PNP, Method.RGBD_ESSENTIAL, Method.RGBD_KABSCH)
-
-
-class Quality(enum.IntEnum):
-    """How a pose was obtained."""
-
-    INIT = 0  #: the start pose: the first keyframe, or held while an RGB-D method waits for depth
-    GOOD = 1  #: estimate with enough inliers
-    WEAK = 2  #: estimate accepted, but with few inliers (< 2 x min_inliers)
-    PREDICTED = 3  #: not estimated (failed or implausible): the constant-velocity prediction is kept
-    FALLBACK = 4  #: tracking failed; ORB matching against the keyframe recovered the pose
-
-    @property
-    def estimated(self) -> bool:
-        """The pose was measured from the images (GOOD, WEAK or FALLBACK)."""
-        return self in (Quality.GOOD, Quality.WEAK, Quality.FALLBACK)
-
-
-MAX_FAILED_FRACTION = 0.5
-"""A run in which the motion of more than this fraction of the frames could not be estimated
-is an error (:meth:`VoResult.check`)."""
-
-
-@dataclass(frozen=True, slots=True)
-class VoOptions:
-    """Tuning of the pipelines (defaults suit 320x240 to 1280x720 at 10-60 Hz). How each default
-    was chosen, with measurements: docs/estimation-log.md, "VoOptions: why each default".
-
-    Attributes:
-        max_features: corners kept per keyframe.
-        cell_px: grid cell of the corner detector, px (0: from the image size and the budget).
-        fast_threshold: FAST threshold (grey levels).
-        klt_win_px, klt_levels: LK window, px (0: 9 up to 400 px wide, else 11); levels (None: 3).
-        klt_back_levels: pyramid levels of the backward (checking) LK pass (at most ``klt_levels``).
-        klt_iters: LK iterations per pyramid level at most.
-        stereo_win_px: LK window of the left-right disparity search, px (0: the tracking window).
-        fb_max_px: forward-backward tolerance of tracks, px.
-        klt_trust_prior_px: RGB-D: tracks within this of their prediction skip the backward check.
-        pnp_method: ``"iterative"``, ``"epnp"`` or ``"sqpnp"``: the fit on all inliers.
-        pnp_kernel: PnP RANSAC's minimal solver: None (``pnp_method``), ``"ap3p"`` or ``"p3p"``.
-        reproj_px: PnP RANSAC and inlier threshold, px.
-        pnp_prior_gate_px, pnp_prior_min_fraction: rgbd-pnp skips RANSAC when this fraction of the
-            tracks lies within the gate (px) of the prediction (0: always RANSAC).
-        inliers: ``"ransac"`` or ``"rigidity"`` (stereo: max-clique of rigid pairs first).
-        kabsch_threshold_m: rgbd-kabsch inlier threshold at 1 m (grows with depth squared).
-        kabsch_polish: rgbd-kabsch: polish the rigid fit like PnP's pose and fuse the depth.
-        kabsch_first_batch: rgbd-kabsch: hypotheses in RANSAC's first batch (then 64 per batch).
-        kabsch_prior_gate, kabsch_prior_min_fraction: rgbd-kabsch skips RANSAC when the prediction
-            explains this fraction of the pairs (gate in inlier thresholds; 0: always RANSAC).
-        essential_threshold_px: epipolar (Sampson) inlier threshold, px.
-        essential_min_parallax_px: rgbd-essential solves by PnP below this median parallax, px.
-        essential_cheirality: rgbd-essential's pick of the four motions: ``"depth"`` or ``"opencv"``.
-        essential_prior_gate_px, essential_prior_min_fraction, essential_prior_iterations: rgbd-essential
-            refines the prediction (Sampson LM) instead of RANSAC when it explains this fraction.
-        essential_pnp_prior: rgbd-essential's PnP steps try the prior-guided PnP before RANSAC.
-        min_inliers: fewer inliers -> the estimate is rejected (the frame is ``PREDICTED``).
-        max_speed_m_s, max_rate_rad_s: sanity limits of one step (faster -> ``PREDICTED``).
-        min_depth_m, max_depth_m: accepted depth range (stereo and depth images), m.
-        init_min_depth_fraction: RGB-D: hold the start pose (``INIT``) until this fraction of the
-            depth image is in range (0: start at once).
-        max_depth_baselines: stereo points farther than this many baselines are not used.
-        min_disparity_px: stereo points with a smaller disparity are not used, px.
-        refine_with_depth: polish poses on the current frame's depth too (``motion.refine_pose``).
-        fuse_depth: fuse each frame's depth of tracked points into their 3D estimates.
-        stereo_fb_check: also check left-right stereo matches right-to-left.
-        orb_fallback: match ORB against the keyframe when tracking fails (``FALLBACK``).
-        keyframes: the keyframe policy (:class:`~estimation.keyframes.KeyframePolicy`).
-        parallax_ref_width_px: rgbd-pnp/-essential on narrower images: parallax scaled to this width.
-        ba_window: local bundle adjustment over this many keyframes (0: off).
-        flow_threshold_px: flow RANSAC threshold, px of image motion since the reference.
-        flow_ref_px: flow's reference moves on once its points moved this far (median px; 0: always).
-        flow_polish: flow: polish the motion since the reference on its points' reprojection.
-        flow_robust_iters: flow: Cauchy-reweighted refits of the velocity after RANSAC.
-        flow_depth: flow on stereo: ``"stereo"`` (each point's depth) or ``"altitude"`` (one, looking down).
-        altitude_every: flow, ``flow_depth="altitude"``: recompute the altitude every N frames.
-        seed: RANSAC random seed (repeatable runs).
-    """
-
-    max_features: int = 300
-    cell_px: int = 0
-    fast_threshold: int = 20
-    klt_win_px: int = 0
-    klt_levels: int | None = None
-    klt_back_levels: int = 1
-    klt_iters: int = 10
-    stereo_win_px: int = 0
-    fb_max_px: float = 1.0
-    klt_trust_prior_px: float = 2.0
-    pnp_method: str = "iterative"
-    pnp_kernel: str | None = None
-    reproj_px: float = 3.0
-    pnp_prior_gate_px: float = 8.0
-    pnp_prior_min_fraction: float = 0.9
-    inliers: str = "ransac"
-    kabsch_threshold_m: float = 0.02
-    kabsch_polish: bool = True
-    kabsch_first_batch: int = 8
-    kabsch_prior_gate: float = 2.0
-    kabsch_prior_min_fraction: float = 0.9
-    essential_threshold_px: float = 1.0
-    essential_min_parallax_px: float = 3.0
-    essential_cheirality: str = "depth"
-    essential_prior_gate_px: float = 2.0
-    essential_prior_min_fraction: float = 0.9
-    essential_prior_iterations: int = 1
-    essential_pnp_prior: bool = False
-    min_inliers: int = 12
-    max_speed_m_s: float = 40.0
-    max_rate_rad_s: float = 8.0
-    min_depth_m: float = 0.2
-    max_depth_m: float = 60.0
-    init_min_depth_fraction: float = 0.0
-    min_disparity_px: float = 3.0
-    max_depth_baselines: float = 60.0
-    refine_with_depth: bool = True
-    fuse_depth: bool = True
-    stereo_fb_check: bool = False
-    orb_fallback: bool = True
-    keyframes: KeyframePolicy = field(default_factory=KeyframePolicy)
-    parallax_ref_width_px: int = 640
-    ba_window: int = 0
-    flow_threshold_px: float = 1.0
-    flow_robust_iters: int = 3
-    flow_depth: str = "stereo"
-    flow_ref_px: float = 15.0
-    flow_polish: bool = True
-    altitude_every: int = 5
-    seed: int = 0
-
-    def __post_init__(self) -> None:
-        if self.inliers not in ("ransac", "rigidity"):
-            raise EstimationError(f"VoOptions.inliers is {self.inliers!r}; use 'ransac' or 'rigidity'")
-        if self.pnp_method not in ("iterative", "epnp", "sqpnp"):
-            raise EstimationError(f"VoOptions.pnp_method is {self.pnp_method!r}; use iterative, epnp or sqpnp")
-        if self.pnp_kernel not in (None, "p3p", "ap3p"):
-            raise EstimationError(f"VoOptions.pnp_kernel is {self.pnp_kernel!r}; use 'ap3p', 'p3p' or None")
-        if self.flow_depth not in ("altitude", "stereo"):
-            raise EstimationError(f"VoOptions.flow_depth is {self.flow_depth!r}; use 'altitude' or 'stereo'")
-        if not self.flow_ref_px >= 0:
-            raise EstimationError(
-                f"VoOptions.flow_ref_px is {self.flow_ref_px}; use pixels >= 0 (0: track from the previous frame)"
-            )
-        if self.essential_cheirality not in ("opencv", "depth"):
-            raise EstimationError(
-                f"VoOptions.essential_cheirality is {self.essential_cheirality!r}; use 'opencv' or 'depth'"
-            )
-        if (
-            self.essential_prior_gate_px < 0
-            or not 0 < self.essential_prior_min_fraction <= 1
-            or self.essential_prior_iterations < 1
-        ):
-            raise EstimationError(
-                f"VoOptions.essential_prior_gate_px={self.essential_prior_gate_px}, "
-                f"essential_prior_min_fraction={self.essential_prior_min_fraction}, "
-                f"essential_prior_iterations={self.essential_prior_iterations}; use a distance >= 0 "
-                "(0: off), a fraction in (0, 1] and at least 1 iteration"
-            )
-        if self.kabsch_prior_gate < 0 or not 0 < self.kabsch_prior_min_fraction <= 1:
-            raise EstimationError(
-                f"VoOptions.kabsch_prior_gate={self.kabsch_prior_gate}, kabsch_prior_min_fraction="
-                f"{self.kabsch_prior_min_fraction}; use a gate >= 0 (0: off) and a fraction in (0, 1]"
-            )
-        if self.kabsch_first_batch < 1:
-            raise EstimationError(
-                f"VoOptions.kabsch_first_batch is {self.kabsch_first_batch}; use at least 1 (8 is typical)"
-            )
-        if self.max_features < 20:
-            raise EstimationError(f"VoOptions.max_features is {self.max_features}; use at least 20 (300 is typical)")
-        if (
-            0 < self.klt_win_px < 5
-            or self.klt_win_px < 0
-            or (self.klt_levels is not None and self.klt_levels < 0)
-            or self.klt_back_levels < 0
-            or self.klt_iters < 1
-        ):
-            raise EstimationError(
-                f"VoOptions.klt_win_px={self.klt_win_px}, klt_levels={self.klt_levels}, "
-                f"klt_back_levels={self.klt_back_levels}, klt_iters={self.klt_iters}; use a window "
-                ">= 5 px (0: automatic), levels >= 0 (None: automatic) and at least 1 iteration"
-            )
-        if self.pnp_prior_gate_px < 0 or self.klt_trust_prior_px < 0 or not 0 < self.pnp_prior_min_fraction <= 1:
-            raise EstimationError(
-                f"VoOptions.pnp_prior_gate_px={self.pnp_prior_gate_px}, klt_trust_prior_px="
-                f"{self.klt_trust_prior_px}, pnp_prior_min_fraction={self.pnp_prior_min_fraction}; use "
-                "distances >= 0 (0: off) and a fraction in (0, 1]"
-            )
-        if not 0.0 <= self.init_min_depth_fraction <= 1.0:
-            raise EstimationError(
-                f"VoOptions.init_min_depth_fraction is {self.init_min_depth_fraction}; use a fraction in [0, 1]"
-            )
-        if not 0 < self.min_depth_m < self.max_depth_m:
-            raise EstimationError(
-                f"VoOptions depth range [{self.min_depth_m}, {self.max_depth_m}] m is empty; set 0 < min < max"
-            )
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class FramePose:
-    """The VO output of one frame.
-
-    Attributes:
-        index: frame counter (0-based).
-        stamp_ns: frame stamp.
-        T_world_camera, T_world_body: (4, 4) poses.
-        n_inliers: correspondences supporting the estimate (0 when predicted/initial).
-        quality: :class:`Quality`.
-        keyframe: this frame became a keyframe.
-        stage_ms: per-stage processing (wall) time of this frame (keys from :data:`STAGES`).
-        cpu_ms: CPU time of this thread for the frame (differs from the wall time when the
-            core is shared).
-    """
-
-    index: int
-    stamp_ns: int
-    T_world_camera: F64
-    T_world_body: F64
-    n_inliers: int
-    quality: Quality
-    keyframe: bool
-    stage_ms: dict[str, float]
-    cpu_ms: float = 0.0
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class VoResult:
-    """All frames of one VO run.
-
-    Attributes:
-        method: the method name.
-        sequence: the sequence name.
-        stamps_ns: (N,) int64.
-        T_world_camera, T_world_body: (N, 4, 4).
-        n_inliers: (N,) int.
-        quality: (N,) int8 values of :class:`Quality`.
-        keyframe: (N,) bool.
-        stage_ms: stage -> (N,) float64 milliseconds (:data:`STAGES`).
-        wall_s: wall time of the run including image loading.
-        image_size: (width, height) processed.
-        cpu_ms: (N,) per-frame CPU time of the processing thread.
-    """
-
-    method: str
-    sequence: str
-    stamps_ns: npt.NDArray[np.int64]
-    T_world_camera: F64
-    T_world_body: F64
-    n_inliers: npt.NDArray[np.int64]
-    quality: npt.NDArray[np.int8]
-    keyframe: npt.NDArray[np.bool_]
-    stage_ms: dict[str, F64]
-    wall_s: float
-    image_size: tuple[int, int]
-    cpu_ms: F64 = field(default_factory=lambda: np.zeros(0))
-
-    def __len__(self) -> int:
-        return len(self.stamps_ns)
-
-    @property
-    def fps(self) -> float:
-        """Frames per second of processing (images already decoded), from the total stage."""
-        total = float(np.sum(self.stage_ms["total"]))
-        return len(self) / (total * 1e-3) if total > 0 else math.inf
-
-    @property
-    def fps_cpu(self) -> float:
-        """Frames per CPU second of the processing thread (what one dedicated core would do)."""
-        total = float(np.sum(self.cpu_ms))
-        return len(self) / (total * 1e-3) if total > 0 else math.inf
-
-    def trajectory(self, frame: str = "camera") -> Trajectory:
-        """The poses as a :class:`~flightkit.datasets.trajectory.Trajectory` (``"camera"`` or ``"body"``)."""
-        from flightkit.datasets.trajectory import Trajectory
-
-        if frame not in ("camera", "body"):
-            raise EstimationError(f"trajectory frame must be 'camera' or 'body', got {frame!r}")
-        mats = self.T_world_camera if frame == "camera" else self.T_world_body
-        return Trajectory.from_matrices(self.stamps_ns, mats, name=f"{self.method}")
-
-    def write_tum(self, path: str | Path, frame: str = "camera") -> Path:
-        """Write the trajectory as a TUM file; returns the path."""
-        from flightkit.datasets.trajectory import write_tum
-
-        return write_tum(
-            path, self.trajectory(frame), header=f"flightkit vo {self.method} on {self.sequence} ({frame})"
-        )
-
-    @property
-    def n_failed(self) -> int:
-        """Frames after the first whose motion was not estimated: predicted (``Quality.PREDICTED``)
-        or held at the start pose (``Quality.INIT`` while waiting for depth)."""
-        q = self.quality[1:]
-        return int(np.count_nonzero((q == Quality.PREDICTED) | (q == Quality.INIT)))
-
-    @property
-    def failed_fraction(self) -> float:
-        """:attr:`n_failed` over the frames after the first (0 for a single frame)."""
-        return self.n_failed / (len(self) - 1) if len(self) > 1 else 0.0
-
-    def failure_message(self) -> str:
-        """One sentence: how many frames were not estimated, and what that means."""
-        return (
-            f"{self.method} could not estimate the motion of {self.n_failed} of {len(self) - 1} frames of "
-            f"{self.sequence} ({100.0 * self.failed_fraction:.0f} %); those poses are the constant-velocity "
-            "prediction, not measurements"
-        )
-
-    def check(self, max_failed_fraction: float = MAX_FAILED_FRACTION) -> None:
-        """Raise when the motion of most of the sequence could not be estimated.
-
-        Raises:
-            EstimationError: more than ``max_failed_fraction`` of the frames were not estimated.
-        """
-        if self.failed_fraction > max_failed_fraction:
-            raise EstimationError(
-                f"{self.failure_message()}: the method does not suit this sequence or sensor "
-                "(docs/estimation.md, 'When VO fails')"
-            )
-
-    def summary(self) -> dict[str, float]:
-        """Mean per-stage milliseconds and frames/s."""
-        out = {f"{k}_ms": float(np.mean(v)) if len(v) else 0.0 for k, v in self.stage_ms.items()}
-        out["fps"] = self.fps
-        return out
-
 
 # ---------------------------------------------------------------------------------------------
-class _Timer:
-    __slots__ = ("_cpu0", "_t", "ms")
-
-    def __init__(self) -> None:
-        self.ms = dict.fromkeys(STAGES, 0.0)
-        self._t = time.perf_counter()
-        self._cpu0 = time.thread_time()
-
-    def cpu_ms(self) -> float:
-        return (time.thread_time() - self._cpu0) * 1e3
-
-    def lap(self, stage: str) -> None:
-        now = time.perf_counter()
-        self.ms[stage] += (now - self._t) * 1e3
-        self._t = now
-
-
 def _scale_motion(T_step: F64, factor: float) -> F64:
     """Scale a relative motion (constant velocity for a different dt)."""
     if abs(factor - 1.0) < 1e-3:
@@ -553,9 +210,7 @@ class VisualOdometry:
         self.next_id = 0
         self.kf_orb: tuple[Any, F64, npt.NDArray[np.bool_]] | None = None
         # Flow state
-        self.flow_ref: _FlowRef | None = None
-        self.altitude_m = math.nan
-        self._warned_altitude = False
+        self._flow = FlowEstimator(self) if self.method is Method.FLOW else None
         # Local BA window: list of (T_world_kf, ids, px_undistorted, disparity_px)
         self.ba_window: list[tuple[F64, npt.NDArray[np.int64], F64, F64]] = []
         self.ba_baseline_m = float(baseline_m) if baseline_m else 0.1  # virtual baseline for depth
@@ -646,7 +301,7 @@ class VisualOdometry:
             return np.eye(4)
         return _scale_motion(self.T_step, dt_s / self.step_dt_s)
 
-    def _emit(self, stamp_ns: int, n_inl: int, q: Quality, kf: bool, timer: _Timer) -> FramePose:
+    def _emit(self, stamp_ns: int, n_inl: int, q: Quality, kf: bool, timer: FrameTimer) -> FramePose:
         timer.ms["total"] = sum(v for k, v in timer.ms.items() if k != "total")
         pose = FramePose(
             self.index,
@@ -684,8 +339,8 @@ class VisualOdometry:
             raise EstimationError(
                 f"method {self.method.value!r} needs a depth image in every frame; use 'stereo' or 'flow'"
             )
-        if self.method is Method.FLOW:
-            return self._process_flow(stamp_ns, gray, right_gray, depth_m)
+        if self._flow is not None:
+            return self._flow.process(stamp_ns, gray, right_gray, depth_m)
         return self._process_keyframe(stamp_ns, gray, right_gray, depth_m)
 
     # ------------------------------------------------------------------ keyframe methods
@@ -1190,7 +845,7 @@ class VisualOdometry:
         o = self.opts
         if self.method is Method.STEREO and right_gray is None:
             raise EstimationError("method 'stereo' needs the right image in every frame")
-        timer = _Timer()
+        timer = FrameTimer()
         pyr = gray
         timer.lap("track")
         if self.prev_pyr is None:
@@ -1404,185 +1059,9 @@ class VisualOdometry:
         good = np.isfinite(Xk).all(axis=1) & (Xk[:, 2] > self.opts.min_depth_m)
         self.kf_X = np.where(good[:, None], Xk, self.kf_X)
 
-    # ------------------------------------------------------------------ optical-flow velocity
-    def _process_flow(
-        self,
-        stamp_ns: int,
-        gray: npt.NDArray[np.uint8],
-        right_gray: npt.NDArray[np.uint8] | None,
-        depth_m: F32 | None,
-    ) -> FramePose:
-        """Flow: track the reference frame's points into this frame, the velocity over the
-        interval since the reference from their motion, the pose = the reference pose moved
-        by that velocity for that time. The reference moves on to this frame once the points
-        moved ``flow_ref_px`` (median), too few remain, or the estimate failed."""
-        o = self.opts
-        timer = _Timer()
-        per_point_stereo = depth_m is None and o.flow_depth == "stereo"
-        if (
-            depth_m is None
-            and not per_point_stereo
-            and (self.index % max(1, o.altitude_every) == 0 or not math.isfinite(self.altitude_m))
-        ):
-            if right_gray is None or self.rig is None:
-                raise EstimationError("method 'flow' needs a depth image or a stereo pair (for the altitude)")
-            z, _ = stereo_altitude_m(gray, right_gray, self.rig.fx, self.rig.baseline_m, self.orb)
-            if math.isfinite(z) and o.min_depth_m <= z <= o.max_depth_m:
-                self.altitude_m = z
-            elif not math.isfinite(self.altitude_m) and not self._warned_altitude:
-                self._warned_altitude = True
-                logger.warning(
-                    "flow: no stereo altitude in %.1f-%.0f m from this pair (got %.2f m); the motion cannot be "
-                    "estimated until there is one (flow_depth='altitude' needs a camera looking down at flat ground)",
-                    o.min_depth_m,
-                    o.max_depth_m,
-                    z,
-                )
-        timer.lap("track")
-        if self.flow_ref is None:
-            self._flow_new_ref(stamp_ns, gray, right_gray, depth_m, np.empty((0, 2), np.float32), np.empty((0, 2)))
-            timer.lap("keyframe")
-            self.prev_stamp_ns = stamp_ns
-            return self._emit(stamp_ns, 0, Quality.INIT, True, timer)
-        ref = self.flow_ref
-        dt_s = max((stamp_ns - self.prev_stamp_ns) * 1e-9, 1e-4)  # since the previous frame
-        dt_ref_s = max((stamp_ns - ref.stamp_ns) * 1e-9, 1e-4)  # since the reference
-        # Each track starts where it was in the previous frame, moved as it moved then (none
-        # when the reference is the previous frame: LK's own pyramid finds the motion).
-        one_step = ref.stamp_ns == self.prev_stamp_ns
-        px, ok = track_klt(
-            ref.gray,
-            gray,
-            ref.pts,
-            o.fb_max_px,
-            self.klt_win,
-            self.klt_levels,
-            guess=None if one_step else ref.trk + ref.step_px,
-            back_levels=self.klt_back_levels,
-            max_iters=o.klt_iters,
-        )
-        tracked = np.flatnonzero(ok)
-        idx = tracked[np.isfinite(ref.Z[tracked])]  # tracked with a depth: the velocity's points
-        timer.lap("track")
-        quality = Quality.PREDICTED
-        n_inl = 0
-        T_world_cur = self.T_world_cam @ invert(self._predict(dt_s))
-        if len(idx) >= o.min_inliers:
-            x0, x1 = ref.xn[idx], self._normalised(px[idx])
-            thr = o.flow_threshold_px / self.intr.fx / dt_ref_s
-            twist, inl = velocity_ransac(
-                x0, x1, ref.Z[idx], dt_ref_s, thr, rng=self.rng, robust_iters=o.flow_robust_iters
-            )
-            if np.count_nonzero(inl) >= o.min_inliers:
-                T_ref_cur = integrate_velocity(twist, dt_ref_s)
-                if o.flow_polish:
-                    T_ref_cur = polish_motion(
-                        T_ref_cur, x0[inl], ref.Z[idx][inl], x1[inl], _FLOW_POLISH_HUBER_PX / self.intr.fx
-                    )
-                T_cand = ref.T_world_cam @ T_ref_cur
-                if self._plausible(invert(T_cand) @ self.T_world_cam, dt_s):
-                    T_world_cur = T_cand
-                    n_inl = int(np.count_nonzero(inl))
-                    quality = Quality.GOOD if n_inl >= 2 * o.min_inliers else Quality.WEAK
-        timer.lap("motion")
-        if quality is not Quality.PREDICTED:
-            self.T_step, self.step_dt_s = invert(T_world_cur) @ self.T_world_cam, dt_s
-        self.T_world_cam = T_world_cur
-        step_px = px[tracked] - ref.trk[tracked]
-        moved = px[tracked] - ref.pts[tracked]
-        renew = (
-            quality is Quality.PREDICTED
-            or len(tracked) < o.max_features // 2
-            or float(np.median(np.einsum("ij,ij->i", moved, moved))) >= o.flow_ref_px * o.flow_ref_px
-        )
-        if renew:
-            self._flow_new_ref(stamp_ns, gray, right_gray, depth_m, px[tracked], step_px)
-            timer.lap("keyframe")
-        else:
-            self.flow_ref = _FlowRef(
-                ref.gray,
-                ref.stamp_ns,
-                ref.T_world_cam,
-                ref.pts[tracked],
-                ref.xn[tracked],
-                ref.Z[tracked],
-                px[tracked],
-                step_px,
-            )
-        self.prev_stamp_ns = stamp_ns
-        return self._emit(stamp_ns, n_inl, quality, renew, timer)
-
-    def _normalised(self, px: F32) -> F64:
-        """Normalised image coordinates ``K^-1 [u, v, 1]`` (undistorted) of pixels, (N, 2)."""
-        und = self._undistort(px)
-        return np.c_[(und[:, 0] - self.intr.cx) / self.intr.fx, (und[:, 1] - self.intr.cy) / self.intr.fy]
-
-    def _flow_new_ref(
-        self,
-        stamp_ns: int,
-        gray: npt.NDArray[np.uint8],
-        right_gray: npt.NDArray[np.uint8] | None,
-        depth_m: F32 | None,
-        kept_px: F32,
-        kept_step_px: F64,
-    ) -> None:
-        """This frame becomes the flow reference: the tracks kept, topped up with new corners
-        when fewer than half remain, each with its depth here."""
-        o = self.opts
-        pts = np.ascontiguousarray(kept_px, dtype=np.float32).reshape(-1, 2)
-        step = np.asarray(kept_step_px, dtype=np.float64).reshape(-1, 2)
-        if len(pts) < o.max_features // 2:
-            mask = None
-            if len(pts):
-                mask = np.full(gray.shape, 255, np.uint8)
-                for x, y in pts:
-                    cv2.circle(mask, (int(x), int(y)), 8, 0, -1)
-            new = shi_tomasi(gray, o.max_features - len(pts), 0.01, max(5.0, self.intr.width / 60), mask)
-            pts = np.concatenate([pts, new]) if len(pts) else new
-            step = np.concatenate([step, np.zeros((len(new), 2))])
-        if depth_m is not None:
-            Z = self._depth_at(depth_m, pts)
-        elif o.flow_depth == "stereo":
-            if right_gray is None or self.rig is None:
-                raise EstimationError("flow_depth='stereo' needs the right image in every frame")
-            X, ok = self._points_3d(pts, right_gray, gray, None, self._flow_init_disparity())
-            Z = np.where(ok, X[:, 2], np.nan)
-        else:
-            Z = np.full(len(pts), self.altitude_m)
-        self.flow_ref = _FlowRef(gray, stamp_ns, self.T_world_cam.copy(), pts, self._normalised(pts), Z, pts, step)
-
-    def _flow_init_disparity(self) -> float:
-        """Disparity to start sparse stereo from: that of the current reference's median depth."""
-        assert self.rig is not None
-        ref = self.flow_ref
-        z = ref.Z[np.isfinite(ref.Z)] if ref is not None else np.empty(0)
-        return float(self.rig.fx * self.rig.baseline_m / np.median(z)) if len(z) else 0.0
-
-
-_FLOW_POLISH_HUBER_PX = 0.25
-"""Huber threshold of flow's reprojection polish: a few times the LK noise (~0.05 px on the
-synthetic patterns). Measured against 1 px with flow_ref_px 15 (point-sampling renderer): ATE
-lower on 5 of the 6 synthetic runs (e.g. the rectangle at 320x240 4.3 -> 3.8 mm), per-step
-error 5-15 % lower on all six (docs/estimation-log.md, "ninth pass")."""
 
 _LEAST_SQUARES_PX = 1e9
 """A Huber threshold no reprojection residual reaches: plain least squares."""
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class _FlowRef:
-    """The flow method's reference frame: its image, time and pose, its points (pixels,
-    normalised coordinates, depth in metres, NaN where unknown), and where each point was
-    last tracked to and how far it moved in that frame (the next frame's guess)."""
-
-    gray: npt.NDArray[np.uint8]
-    stamp_ns: int
-    T_world_cam: F64
-    pts: F32
-    xn: F64
-    Z: F64
-    trk: F32
-    step_px: F64
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1764,23 +1243,3 @@ def run_vo(
     if result.n_failed:
         logger.warning("%s", result.failure_message())
     return result
-
-
-def collect_result(poses: list[FramePose], method: str, name: str, wall_s: float, size: tuple[int, int]) -> VoResult:
-    """Stack per-frame poses into a :class:`VoResult`."""
-    if not poses:
-        raise EstimationError(f"no frames were processed for {name}; check the frame range")
-    return VoResult(
-        method=method,
-        sequence=name,
-        stamps_ns=np.array([p.stamp_ns for p in poses], dtype=np.int64),
-        T_world_camera=np.stack([p.T_world_camera for p in poses]),
-        T_world_body=np.stack([p.T_world_body for p in poses]),
-        n_inliers=np.array([p.n_inliers for p in poses], dtype=np.int64),
-        quality=np.array([int(p.quality) for p in poses], dtype=np.int8),
-        keyframe=np.array([p.keyframe for p in poses], dtype=bool),
-        stage_ms={s: np.array([p.stage_ms[s] for p in poses]) for s in STAGES},
-        wall_s=wall_s,
-        image_size=size,
-        cpu_ms=np.array([p.cpu_ms for p in poses]),
-    )
