@@ -61,22 +61,18 @@ import numpy as np
 import numpy.typing as npt
 
 from estimation import _kernels
+from estimation.estimators import keyframe_estimator
 from estimation.features import DescriptorExtractor, GridDetector, as_gray
 from estimation.flow import track_klt
 from estimation.flow_vo import FlowEstimator
 from estimation.matching import match_descriptors, match_stereo_rows
 from estimation.motion import (
     Motion,
-    essential_from_prior,
-    essential_metric,
     invert,
     make_T,
     median,
     pnp,
-    ransac_rigid,
     refine_pose,
-    rigid_from_prior,
-    rigidity_inliers,
     rotation_angle_rad,
 )
 from estimation.stereo import StereoRig, sparse_disparity, triangulate
@@ -211,6 +207,7 @@ class VisualOdometry:
         self.kf_orb: tuple[Any, F64, npt.NDArray[np.bool_]] | None = None
         # Flow state
         self._flow = FlowEstimator(self) if self.method is Method.FLOW else None
+        self._estimator = keyframe_estimator(self) if self.method is not Method.FLOW else None
         # Local BA window: list of (T_world_kf, ids, px_undistorted, disparity_px)
         self.ba_window: list[tuple[F64, npt.NDArray[np.int64], F64, F64]] = []
         self.ba_baseline_m = float(baseline_m) if baseline_m else 0.1  # virtual baseline for depth
@@ -489,171 +486,10 @@ class VisualOdometry:
         pyr: npt.NDArray[np.uint8],
         right_gray: npt.NDArray[np.uint8] | None = None,
     ) -> Motion:
-        o = self.opts
+        """The keyframe-to-current motion by the method's estimator (``estimation.estimators``)."""
+        assert self._estimator is not None
         und_cur = self._undistort(px_cur)
-        if self.method is Method.RGBD_ESSENTIAL:
-            und_kf = self._undistort(px_kf)
-            parallax = median(np.linalg.norm(und_cur - und_kf, axis=1))
-            m = Motion(guess, np.zeros(len(px_cur), dtype=bool), False)
-            m_prior = None
-            if parallax >= o.essential_min_parallax_px:
-                if o.essential_prior_gate_px > 0 and self.T_step is not None:
-                    # The constant-velocity prediction usually explains the tracks: then no RANSAC.
-                    m_prior = essential_from_prior(
-                        und_kf,
-                        und_cur,
-                        self.K,
-                        X_kf,
-                        guess,
-                        gate_px=o.essential_prior_gate_px,
-                        threshold_px=o.essential_threshold_px,
-                        min_fraction=o.essential_prior_min_fraction,
-                        min_inliers=o.min_inliers,
-                        iterations=o.essential_prior_iterations,
-                    )
-                self.path_counts["essential-prior" if m_prior is not None else "essential-ransac"] += 1
-                m = (
-                    m_prior
-                    if m_prior is not None
-                    else essential_metric(
-                        und_kf,
-                        und_cur,
-                        self.K,
-                        X_kf,
-                        threshold_px=o.essential_threshold_px,
-                        min_inliers=o.min_inliers,
-                        cheirality=o.essential_cheirality,
-                        agree_px=2.0 * o.reproj_px,
-                    )
-                )
-            if m.ok:
-                # With little parallax or a mostly planar scene (the floor) the 5-point RANSAC
-                # can settle on a wrong motion that a few points satisfy. The keyframe's depth
-                # tells: the right motion (with its metric scale) also reprojects the 3D points
-                # of most tracks, which passed the forward-backward check. The points that
-                # reproject are the inliers (depth edges and holes, invisible to the epipolar
-                # test, drop out here).
-                agree = self._reproj_err2(m.T_cur_ref, X_kf, und_cur) < (2.0 * o.reproj_px) ** 2
-                if np.count_nonzero(agree) < max(o.min_inliers, 0.5 * len(px_cur)):
-                    m = Motion(guess, np.zeros(len(px_cur), dtype=bool), False)
-                else:
-                    # Least squares on the reprojection of those points from the 5-point motion
-                    # (as PnP's final fit; Gauss-Newton, converged), inliers re-selected, before
-                    # the polish below. Needed after the prior-guided path too: at 1-5 cm
-                    # baselines the epipolar geometry pins the translation direction only to a
-                    # few degrees, and the depth polish alone (4 Huber steps) kept that error
-                    # (ATE 0.015-0.34 m).
-                    T_lm = refine_pose(
-                        m.T_cur_ref, X_kf[agree], und_cur[agree], self.K, huber_px=_LEAST_SQUARES_PX, iterations=20
-                    )
-                    mask = agree & (self._reproj_err2(T_lm, X_kf, und_cur) < o.reproj_px**2)
-                    m = (
-                        Motion(T_lm, mask, True)
-                        if np.count_nonzero(mask) >= o.min_inliers
-                        else Motion(m.T_cur_ref, agree, True)
-                    )
-            if not m.ok and o.essential_pnp_prior and o.refine_with_depth and self.T_step is not None:
-                m_pp = self._pnp_from_prior(X_kf, px_cur, und_cur, guess, depth_m, pyr, right_gray)
-                if m_pp is not None:
-                    self.path_counts["pnp-prior"] += 1
-                    return m_pp
-            if not m.ok:
-                self.path_counts["pnp"] += 1
-                m = pnp(
-                    X_kf,
-                    und_cur,
-                    self.K,
-                    method=o.pnp_method,
-                    reproj_px=o.reproj_px,
-                    min_inliers=o.min_inliers,
-                    guess_T_cur_ref=guess,
-                    ransac_kernel=o.pnp_kernel,
-                )
-            return self._polish(m, X_kf, px_cur, und_cur, depth_m, pyr, right_gray)
-        if self.method is Method.RGBD_KABSCH:
-            assert depth_m is not None
-            z = self._depth_at(depth_m, px_cur)
-            ok = np.isfinite(z)
-            X_cur = self._backproject(und_cur, np.where(ok, z, 1.0))
-            idx = np.flatnonzero(ok)
-            all_ok = len(idx) == len(ok)  # usual: no copies of the pairs
-            X_ref = X_kf if all_ok else X_kf[idx]
-            X_cur = X_cur if all_ok else X_cur[idx]
-            # Kinect-like depth noise grows with z^2: threshold scaled by the mean squared depth.
-            zz = float(np.mean(X_ref[:, 2] ** 2)) if len(idx) else 1.0
-            thr_m = o.kabsch_threshold_m * max(1.0, zz)
-            m_rigid = None
-            if o.kabsch_prior_gate > 0 and self.T_step is not None:
-                # The constant-velocity prediction usually explains the 3D-3D pairs: then no RANSAC.
-                m_rigid = rigid_from_prior(
-                    X_ref,
-                    X_cur,
-                    guess,
-                    threshold_m=thr_m,
-                    gate_m=o.kabsch_prior_gate * thr_m,
-                    min_fraction=o.kabsch_prior_min_fraction,
-                    min_inliers=o.min_inliers,
-                )
-                self.path_counts["kabsch-prior" if m_rigid is not None else "kabsch-ransac"] += 1
-            m = (
-                m_rigid
-                if m_rigid is not None
-                else ransac_rigid(
-                    X_ref,
-                    X_cur,
-                    threshold_m=thr_m,
-                    min_inliers=o.min_inliers,
-                    rng=self.rng,
-                    first_batch=o.kabsch_first_batch,
-                )
-            )
-            mask = np.zeros(len(px_cur), dtype=bool)
-            mask[idx] = m.inliers
-            # The rigid fit weighs every point's depth noise (both frames) equally; polish it
-            # like PnP (reprojection plus this frame's depth), which also keeps the depth
-            # measurements for fusion: the per-step error fell 23-55 % on every sequence.
-            m = Motion(m.T_cur_ref, mask, m.ok)
-            if not o.kabsch_polish:
-                return m
-            return self._polish(m, X_kf, px_cur, und_cur, depth_m, pyr, right_gray, z)
-        sel = np.ones(len(px_cur), dtype=bool)
-        if self.method is Method.STEREO and o.inliers == "rigidity" and right_pyr is not None:
-            init = (self.rig.fx * self.rig.baseline_m / np.maximum(X_kf[:, 2], 1e-3)).astype(np.float32)  # type: ignore[union-attr]
-            X_cur, ok = self._points_3d(px_cur, right_pyr, pyr, None, init)
-            sel = np.zeros(len(px_cur), dtype=bool)
-            idx = np.flatnonzero(ok)
-            if len(idx) >= o.min_inliers:
-                sel[idx[rigidity_inliers(X_kf[idx], X_cur[idx], tol_m=0.05, rel_tol=0.03)]] = True
-            if np.count_nonzero(sel) < o.min_inliers:
-                sel[:] = True
-        idx = np.flatnonzero(sel)
-        if o.pnp_prior_gate_px > 0 and o.refine_with_depth and self.method is Method.RGBD_PNP:
-            # The constant-velocity prediction usually explains the tracks: then no RANSAC.
-            m_prior = self._pnp_from_prior(X_kf[idx], px_cur[idx], und_cur[idx], guess, depth_m, pyr, right_gray)
-            if m_prior is not None:
-                mask = np.zeros(len(px_cur), dtype=bool)
-                mask[idx] = m_prior.inliers
-                if self._meas is not None:
-                    self._meas = (idx[self._meas[0]], self._meas[1])
-                return Motion(m_prior.T_cur_ref, mask, True)
-        m = pnp(
-            X_kf[idx],
-            und_cur[idx],
-            self.K,
-            method=o.pnp_method,
-            reproj_px=o.reproj_px,
-            min_inliers=o.min_inliers,
-            guess_T_cur_ref=guess,
-            ransac_kernel=o.pnp_kernel,
-        )
-        mask = np.zeros(len(px_cur), dtype=bool)
-        mask[idx] = m.inliers
-        T = m.T_cur_ref
-        if m.ok and o.refine_with_depth:
-            T = self._refine(T, X_kf[mask], px_cur[mask], und_cur[mask], depth_m, pyr, right_gray)
-            if self._meas is not None:
-                self._meas = (np.flatnonzero(mask)[self._meas[0]], self._meas[1])
-        return Motion(T, mask, m.ok)
+        return self._estimator.estimate(X_kf, px_kf, px_cur, und_cur, depth_m, guess, right_pyr, pyr, right_gray)
 
     def _pnp_from_prior(
         self,
@@ -1058,10 +894,6 @@ class VisualOdometry:
         Xk = Xw @ T_kf_world[:3, :3].T + T_kf_world[:3, 3]
         good = np.isfinite(Xk).all(axis=1) & (Xk[:, 2] > self.opts.min_depth_m)
         self.kf_X = np.where(good[:, None], Xk, self.kf_X)
-
-
-_LEAST_SQUARES_PX = 1e9
-"""A Huber threshold no reprojection residual reaches: plain least squares."""
 
 
 # ---------------------------------------------------------------------------------------------
