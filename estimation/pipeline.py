@@ -48,14 +48,12 @@ Frames: camera frames are OpenCV; the world frame is the first camera's unless
 
 from __future__ import annotations
 
-import enum
 import logging
 import math
 import time
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from pathlib import Path
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import cv2
@@ -63,448 +61,51 @@ import numpy as np
 import numpy.typing as npt
 
 from estimation import _kernels
-from estimation.features import DescriptorExtractor, GridDetector, as_gray, shi_tomasi
-from estimation.flow import integrate_velocity, polish_motion, stereo_altitude_m, track_klt, velocity_ransac
-from estimation.keyframes import KeyframePolicy
+from estimation.estimators import keyframe_estimator
+from estimation.features import DescriptorExtractor, GridDetector, as_gray
+from estimation.flow import track_klt
+from estimation.flow_vo import FlowEstimator
 from estimation.matching import match_descriptors, match_stereo_rows
 from estimation.motion import (
     Motion,
-    essential_from_prior,
-    essential_metric,
     invert,
     make_T,
     median,
     pnp,
-    ransac_rigid,
     refine_pose,
-    rigid_from_prior,
-    rigidity_inliers,
     rotation_angle_rad,
 )
 from estimation.stereo import StereoRig, sparse_disparity, triangulate
+from estimation.vo_options import Method, VoOptions
+from estimation.vo_result import MAX_FAILED_FRACTION, STAGES, FramePose, FrameTimer, Quality, VoResult, collect_result
 from flightkit.errors import EstimationError
 from flightkit.frames import Transform
 
 if TYPE_CHECKING:
     from flightkit.datasets.base import CameraIntrinsics, Frame, Sequence
-    from flightkit.datasets.trajectory import Trajectory
 
-__all__ = ["STAGES", "FramePose", "Method", "Quality", "VisualOdometry", "VoOptions", "VoResult", "run_vo"]
+__all__ = [
+    "MAX_FAILED_FRACTION",
+    "STAGES",
+    "FramePose",
+    "FramePreparer",
+    "Method",
+    "Quality",
+    "VisualOdometry",
+    "VoOptions",
+    "VoResult",
+    "collect_result",
+    "run_vo",
+    "warm_up",
+]
 
 logger = logging.getLogger(__name__)
 
 F64 = npt.NDArray[np.float64]
 F32 = npt.NDArray[np.float32]
 
-STAGES = ("track", "motion", "keyframe", "ba", "total")
-"""Per-frame timing stages, milliseconds: front-end tracking (pyramid + LK), motion
-estimation (incl. fallback), keyframe creation (detection + 3D), bundle adjustment, total."""
-
-
-class Method(enum.StrEnum):
-    RGBD_PNP = "rgbd-pnp"
-    RGBD_ESSENTIAL = "rgbd-essential"
-    RGBD_KABSCH = "rgbd-kabsch"
-    STEREO = "stereo"
-    FLOW = "flow"
-
-    @property
-    def needs_depth(self) -> bool:
-        return self in (Method.RGBD_PNP, Method.RGBD_ESSENTIAL, Method.RGBD_KABSCH)
-
-
-class Quality(enum.IntEnum):
-    """How a pose was obtained."""
-
-    INIT = 0  #: the start pose: the first keyframe, or held while an RGB-D method waits for depth
-    GOOD = 1  #: estimate with enough inliers
-    WEAK = 2  #: estimate accepted, but with few inliers (< 2 x min_inliers)
-    PREDICTED = 3  #: estimate failed or was implausible; constant-velocity prediction used
-    FALLBACK = 4  #: tracking failed; ORB matching against the keyframe recovered the pose
-
-
-@dataclass(frozen=True, slots=True)
-class VoOptions:
-    """Tuning of the pipelines (defaults suit 320x240 to 1280x720 at 10-60 Hz).
-
-    Attributes:
-        max_features: corners kept per keyframe.
-        cell_px: grid cell of the corner detector (0: chosen from image size and budget).
-        fast_threshold: FAST threshold.
-        klt_win_px, klt_levels: LK window and pyramid levels (0: 9 px up to 400 px wide,
-            else 11 px; None: 3 levels). LK's cost grows with the window's area (9 px costs
-            0.6x of 11 px) and is about the same on every level; 3 levels reach ~30 px of
-            motion without a prior (2 levels lost tracks beyond ~10 px at 9 px).
-        klt_back_levels: pyramid levels of the backward (checking) pass of the tracker (at
-            most ``klt_levels``); it starts at the answer, so it needs no coarse levels.
-        klt_iters: LK iterations per pyramid level at most (each also stops on a 0.03 px step).
-        stereo_win_px: LK window of the left-right (disparity) search (0: the tracking window).
-        fb_max_px: forward-backward tolerance of tracks.
-        klt_trust_prior_px: the RGB-D methods with a motion prior (from the second step on): a
-            track that ends within this distance of its predicted position (the keyframe point
-            projected with the constant-velocity motion) skips the backward check; only the
-            others are tracked back (0: all are). The prior is evidence of its own, and the
-            prior-guided fits (``pnp_prior_*``, ``essential_prior_*``, ``kabsch_prior_*``) drop
-            what does not fit the pose. 7-Scenes at 320x240: the backward pass ran on 2-25 % of
-            the tracks. rgbd-essential and rgbd-kabsch since 2026-11-22 (tenth pass of
-            docs/estimation-log.md): 0.94-1.24x (median 1.13x) the frames per CPU second on
-            the synthetic patterns and 7-Scenes, per-step errors within 3 %, ATE lower on 12
-            of 16 runs. Not applied to stereo (KITTI not re-measured).
-        pnp_method: ``"iterative"``, ``"epnp"`` or ``"sqpnp"``: the fit on all inliers.
-        pnp_kernel: the solver of PnP RANSAC's minimal samples: None (``pnp_method`` itself,
-            OpenCV's default), ``"ap3p"`` or ``"p3p"`` (4 points; RANSAC alone ~2.5x cheaper,
-            0.3 vs 0.8 ms for 200 points, but no faster end to end within this machine's
-            noise, and KITTI's ATE spread was wider).
-        reproj_px: PnP RANSAC threshold.
-        pnp_prior_gate_px, pnp_prior_min_fraction: rgbd-pnp skips RANSAC when the
-            constant-velocity prediction explains the tracks: when at least
-            ``pnp_prior_min_fraction`` of them reproject within ``pnp_prior_gate_px`` of the
-            prediction, SQPnP (global, no starting point) fits those, the inliers are the
-            tracks within ``reproj_px`` of the result, and if they are still that fraction the
-            pose goes to the usual depth polish; else RANSAC as before (0: always RANSAC).
-            RANSAC found 96-100 % inliers on every RGB-D sequence here, so its hypotheses were
-            wasted work (0.7-1 ms a frame at 320x240). A Gauss-Newton fit started at the
-            prediction instead of SQPnP diverged on the synthetic floor (its flat valley keeps
-            the start's error, which the velocity prior then doubles). Stereo keeps RANSAC
-            (KITTI's ATE rose 0.070 to 0.078 m with it).
-        inliers: ``"ransac"`` or ``"rigidity"`` (stereo: max-clique of rigid pairs first).
-        kabsch_threshold_m: rgbd-kabsch inlier threshold at 1 m (grows with depth squared).
-        kabsch_polish: rgbd-kabsch: polish the rigid fit like PnP's pose (reprojection plus
-            this frame's depth, ``refine_with_depth`` must be on) and fuse the depth (the
-            per-step error halved on the synthetic sequences and the 7-Scenes ATE fell from
-            0.019 to 0.006 m; False: the bare 3D-3D fit).
-        kabsch_first_batch: rgbd-kabsch: hypotheses in RANSAC's first batch (then 64 per
-            batch). The tracks here are 96-100 % inliers, so two draws reach the 0.999
-            confidence and 56 of a first batch of 64 were wasted (a 64 x N x 3 residual
-            tensor and 64 SVDs every frame); 8 gave bit-identical trajectories on 7-Scenes,
-            the TUM pairs and the synthetic patterns, 1.3-1.8x faster.
-        kabsch_prior_gate, kabsch_prior_min_fraction: rgbd-kabsch skips RANSAC when the
-            constant-velocity prediction explains the 3D-3D pairs: when at least
-            ``kabsch_prior_min_fraction`` of them lie within ``kabsch_prior_gate`` times the
-            inlier threshold of the predicted motion, Kabsch fits those and the inliers are
-            re-selected as after RANSAC (:func:`~estimation.motion.rigid_from_prior`); else
-            RANSAC (0: always RANSAC). Taken on every step but the first on 7-Scenes and the
-            synthetic patterns, with trajectories identical bit for bit (RANSAC's re-selection
-            ends on the same inliers); 1.14-1.23x the frames per CPU second (2026-11-22).
-        essential_threshold_px: epipolar RANSAC threshold.
-        essential_min_parallax_px: below this median image motion since the keyframe the
-            essential matrix is ill-conditioned; ``rgbd-essential`` then solves the step by
-            PnP on the same tracks (and keeps the keyframe until the parallax is there).
-        essential_cheirality: how rgbd-essential picks the motion among the essential
-            matrix's four: ``"depth"`` (the rotation whose metric motion, scale from the
-            keyframe depth, reprojects most keyframe points;
-            :func:`~estimation.motion.pose_from_essential`) or ``"opencv"`` (``recoverPose``,
-            the code before 2026-11-22: its triangulation drops points beyond 50 baselines, so
-            on 7-Scenes 31 of 49 essential matrices were discarded and a PnP RANSAC ran).
-        essential_prior_gate_px, essential_prior_min_fraction, essential_prior_iterations:
-            rgbd-essential skips the 5-point RANSAC when the constant-velocity prediction
-            explains the tracks: when at least ``essential_prior_min_fraction`` of them lie
-            within ``essential_prior_gate_px`` (Sampson distance) of the predicted epipolar
-            geometry, those are fitted by Gauss-Newton/LM on the Sampson distance (5 DoF,
-            ``essential_prior_iterations`` steps, started at the prediction), the inliers are
-            the tracks within ``essential_threshold_px`` of the result, and the metric scale
-            comes from depth as after RANSAC
-            (:func:`~estimation.motion.essential_from_prior`); else RANSAC (0: always RANSAC).
-            Taken on 47-48 of 49 steps on 7-Scenes and 145-163 of 180-210 on the synthetic
-            patterns; more iterations measured no better (the reprojection fit that follows
-            converges from one step).
-        essential_pnp_prior: rgbd-essential, steps with too little parallax for the essential
-            matrix (or where it fails): rgbd-pnp's prior-guided PnP (SQPnP on the tracks the
-            prediction explains, ``pnp_prior_*``) before PnP RANSAC. Off: measured twice
-            (2026-11-21 and -22) with mixed ATE (rectangle 0.0038 -> 0.0042 m, lawnmower
-            0.0044 -> 0.0040 m) and no clear speed gain (34-53 steps of 180-210).
-        min_inliers: fewer inliers -> the estimate is rejected.
-        max_speed_m_s, max_rate_rad_s: sanity limits of one step.
-        min_depth_m, max_depth_m: accepted depth range (stereo and depth images).
-        init_min_depth_fraction: the RGB-D methods make their first keyframe only once at least
-            this fraction of the depth image lies in that range; until then every frame gets
-            the start pose, flagged ``INIT``. For a start on the ground (a camera a few
-            centimetres above the floor sees nothing in range before take-off): 0.5 gave the
-            right rotation at lift-off (demo flight: 1.9 instead of 3.1 degrees RMSE), but the
-            lift-off the camera could not see stays as a position offset (0.19 instead of
-            0.15 m RMSE without alignment; equal after alignment). 0 (default): start at the
-            first frame.
-        max_depth_baselines: stereo points farther than this many baselines are not used
-            (depth error grows with the square of range; ORB-SLAM calls points within 35-40
-            baselines "close"; 60 measured best on KITTI, trading translation for rotation).
-        min_disparity_px: stereo points with a smaller disparity are not used (their depth
-            is too uncertain for PnP: 0.25 px of disparity noise is 8 % of depth at 3 px).
-        refine_with_depth: polish PnP poses on the current frame's depth too (stereo
-            disparity or depth image), :func:`~estimation.motion.refine_pose`.
-        fuse_depth: fuse each frame's depth measurement of tracked points into their 3D
-            estimate (inverse variance, sigma_z ~ z^2), so depth improves while a point is
-            tracked and approaches; kept points carry it into the next keyframe.
-        stereo_fb_check: also check left-right stereo matches right-to-left (else the row
-            and disparity-range checks alone reject bad matches).
-        orb_fallback: match ORB against the keyframe when tracking fails.
-        keyframes: the keyframe policy.
-        parallax_ref_width_px: rgbd-pnp and rgbd-essential on images narrower than this: the
-            keyframe parallax is scaled to this width, so keyframes come after the same angle
-            of view as at this width (at 320 px, 25 px of parallax was twice the angle of 640
-            px; 0: raw pixels). It lowered rgbd-pnp's ATE on every sequence; rgbd-essential's
-            rose on 7-Scenes with the 5-point RANSAC alone, and fell on 7-Scenes and the three
-            synthetic patterns once the prior-guided essential matrix and the depth cheirality
-            were there (2026-11-22). Not rgbd-kabsch (the circle's ATE rose).
-        ba_window: local bundle adjustment over this many keyframes (0: off).
-        flow_threshold_px: flow RANSAC threshold (pixels of image motion since the reference).
-        flow_ref_px: flow keeps tracking from one reference frame until its points have moved
-            this far (median, pixels), fewer than half of them remain or an estimate fails;
-            the velocity is then the mean over the interval since the reference. LK errs by
-            ~0.01 px per call with the same sign from frame to frame (measured on the synthetic
-            rectangle: +1 % of a 0.8 px step, every step), so tracking from the previous frame
-            (0) integrates that bias into a drift of 1-3 % of the path. Measured ATE, bench runs
-            before and after: 7-Scenes 15.5 -> 7.9 mm (320x240), 8.8 -> 8.7 mm (640x480);
-            synthetic patterns in docs/estimation-log.md, "ninth pass".
-        flow_polish: flow: polish the motion since the reference on the reprojection of the
-            reference points (``estimation.flow.polish_motion``, exact for any motion) instead
-            of integrating the first-order velocity model alone, whose error over several
-            frames showed as a 2-5 % scale error on the lawnmower.
-        flow_robust_iters: flow: reweighted (Cauchy, scale half of ``flow_threshold_px``)
-            refits of the velocity after RANSAC's least-squares refit
-            (``estimation.flow.velocity_ransac``, ``robust_iters``): tracks that disagree by
-            most of the threshold count less. Per-step error (RPE) 12-19 % lower on the synthetic
-            patterns, 7-Scenes ATE 0.021 -> 0.016 m at 320x240 (docs/estimation-log.md,
-            "seventh pass, accuracy"); 0: two plain least-squares refits.
-        flow_depth: flow with stereo (no depth image): ``"altitude"`` (one depth for all
-            points, ``Z = f B / d`` from row-consistent ORB matches: a camera looking down at
-            flat ground) or ``"stereo"`` (each point's own depth by sparse stereo; any scene).
-        altitude_every: flow with stereo: recompute the altitude every N frames.
-        seed: RANSAC random seed (repeatable runs).
-    """
-
-    max_features: int = 300
-    cell_px: int = 0
-    fast_threshold: int = 20
-    klt_win_px: int = 0
-    klt_levels: int | None = None
-    klt_back_levels: int = 1
-    klt_iters: int = 10
-    stereo_win_px: int = 0
-    fb_max_px: float = 1.0
-    klt_trust_prior_px: float = 2.0
-    pnp_method: str = "iterative"
-    pnp_kernel: str | None = None
-    reproj_px: float = 3.0
-    pnp_prior_gate_px: float = 8.0
-    pnp_prior_min_fraction: float = 0.9
-    inliers: str = "ransac"
-    kabsch_threshold_m: float = 0.02
-    kabsch_polish: bool = True
-    kabsch_first_batch: int = 8
-    kabsch_prior_gate: float = 2.0
-    kabsch_prior_min_fraction: float = 0.9
-    essential_threshold_px: float = 1.0
-    essential_min_parallax_px: float = 3.0
-    essential_cheirality: str = "depth"
-    essential_prior_gate_px: float = 2.0
-    essential_prior_min_fraction: float = 0.9
-    essential_prior_iterations: int = 1
-    essential_pnp_prior: bool = False
-    min_inliers: int = 12
-    max_speed_m_s: float = 40.0
-    max_rate_rad_s: float = 8.0
-    min_depth_m: float = 0.2
-    max_depth_m: float = 60.0
-    init_min_depth_fraction: float = 0.0
-    min_disparity_px: float = 3.0
-    max_depth_baselines: float = 60.0
-    refine_with_depth: bool = True
-    fuse_depth: bool = True
-    stereo_fb_check: bool = False
-    orb_fallback: bool = True
-    keyframes: KeyframePolicy = field(default_factory=KeyframePolicy)
-    parallax_ref_width_px: int = 640
-    ba_window: int = 0
-    flow_threshold_px: float = 1.0
-    flow_robust_iters: int = 3
-    flow_depth: str = "altitude"
-    flow_ref_px: float = 15.0
-    flow_polish: bool = True
-    altitude_every: int = 5
-    seed: int = 0
-
-    def __post_init__(self) -> None:
-        if self.inliers not in ("ransac", "rigidity"):
-            raise EstimationError(f"VoOptions.inliers is {self.inliers!r}; use 'ransac' or 'rigidity'")
-        if self.pnp_method not in ("iterative", "epnp", "sqpnp"):
-            raise EstimationError(f"VoOptions.pnp_method is {self.pnp_method!r}; use iterative, epnp or sqpnp")
-        if self.pnp_kernel not in (None, "p3p", "ap3p"):
-            raise EstimationError(f"VoOptions.pnp_kernel is {self.pnp_kernel!r}; use 'ap3p', 'p3p' or None")
-        if self.flow_depth not in ("altitude", "stereo"):
-            raise EstimationError(f"VoOptions.flow_depth is {self.flow_depth!r}; use 'altitude' or 'stereo'")
-        if not self.flow_ref_px >= 0:
-            raise EstimationError(
-                f"VoOptions.flow_ref_px is {self.flow_ref_px}; use pixels >= 0 (0: track from the previous frame)"
-            )
-        if self.essential_cheirality not in ("opencv", "depth"):
-            raise EstimationError(
-                f"VoOptions.essential_cheirality is {self.essential_cheirality!r}; use 'opencv' or 'depth'"
-            )
-        if (
-            self.essential_prior_gate_px < 0
-            or not 0 < self.essential_prior_min_fraction <= 1
-            or self.essential_prior_iterations < 1
-        ):
-            raise EstimationError(
-                f"VoOptions.essential_prior_gate_px={self.essential_prior_gate_px}, "
-                f"essential_prior_min_fraction={self.essential_prior_min_fraction}, "
-                f"essential_prior_iterations={self.essential_prior_iterations}; use a distance >= 0 "
-                "(0: off), a fraction in (0, 1] and at least 1 iteration"
-            )
-        if self.kabsch_prior_gate < 0 or not 0 < self.kabsch_prior_min_fraction <= 1:
-            raise EstimationError(
-                f"VoOptions.kabsch_prior_gate={self.kabsch_prior_gate}, kabsch_prior_min_fraction="
-                f"{self.kabsch_prior_min_fraction}; use a gate >= 0 (0: off) and a fraction in (0, 1]"
-            )
-        if self.kabsch_first_batch < 1:
-            raise EstimationError(
-                f"VoOptions.kabsch_first_batch is {self.kabsch_first_batch}; use at least 1 (8 is typical)"
-            )
-        if self.max_features < 20:
-            raise EstimationError(f"VoOptions.max_features is {self.max_features}; use at least 20 (300 is typical)")
-        if (
-            0 < self.klt_win_px < 5
-            or self.klt_win_px < 0
-            or (self.klt_levels is not None and self.klt_levels < 0)
-            or self.klt_back_levels < 0
-            or self.klt_iters < 1
-        ):
-            raise EstimationError(
-                f"VoOptions.klt_win_px={self.klt_win_px}, klt_levels={self.klt_levels}, "
-                f"klt_back_levels={self.klt_back_levels}, klt_iters={self.klt_iters}; use a window "
-                ">= 5 px (0: automatic), levels >= 0 (None: automatic) and at least 1 iteration"
-            )
-        if self.pnp_prior_gate_px < 0 or self.klt_trust_prior_px < 0 or not 0 < self.pnp_prior_min_fraction <= 1:
-            raise EstimationError(
-                f"VoOptions.pnp_prior_gate_px={self.pnp_prior_gate_px}, klt_trust_prior_px="
-                f"{self.klt_trust_prior_px}, pnp_prior_min_fraction={self.pnp_prior_min_fraction}; use "
-                "distances >= 0 (0: off) and a fraction in (0, 1]"
-            )
-        if not 0.0 <= self.init_min_depth_fraction <= 1.0:
-            raise EstimationError(
-                f"VoOptions.init_min_depth_fraction is {self.init_min_depth_fraction}; use a fraction in [0, 1]"
-            )
-        if not 0 < self.min_depth_m < self.max_depth_m:
-            raise EstimationError(
-                f"VoOptions depth range [{self.min_depth_m}, {self.max_depth_m}] m is empty; set 0 < min < max"
-            )
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class FramePose:
-    """The VO output of one frame.
-
-    Attributes:
-        index: frame counter (0-based).
-        stamp_ns: frame stamp.
-        T_world_camera, T_world_body: (4, 4) poses.
-        n_inliers: correspondences supporting the estimate (0 when predicted/initial).
-        quality: :class:`Quality`.
-        keyframe: this frame became a keyframe.
-        stage_ms: per-stage processing (wall) time of this frame (keys from :data:`STAGES`).
-        cpu_ms: CPU time of this thread for the frame (differs from the wall time when the
-            core is shared).
-    """
-
-    index: int
-    stamp_ns: int
-    T_world_camera: F64
-    T_world_body: F64
-    n_inliers: int
-    quality: Quality
-    keyframe: bool
-    stage_ms: dict[str, float]
-    cpu_ms: float = 0.0
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class VoResult:
-    """All frames of one VO run.
-
-    Attributes:
-        method: the method name.
-        sequence: the sequence name.
-        stamps_ns: (N,) int64.
-        T_world_camera, T_world_body: (N, 4, 4).
-        n_inliers: (N,) int.
-        quality: (N,) int8 values of :class:`Quality`.
-        keyframe: (N,) bool.
-        stage_ms: stage -> (N,) float64 milliseconds (:data:`STAGES`).
-        wall_s: wall time of the run including image loading.
-        image_size: (width, height) processed.
-        cpu_ms: (N,) per-frame CPU time of the processing thread.
-    """
-
-    method: str
-    sequence: str
-    stamps_ns: npt.NDArray[np.int64]
-    T_world_camera: F64
-    T_world_body: F64
-    n_inliers: npt.NDArray[np.int64]
-    quality: npt.NDArray[np.int8]
-    keyframe: npt.NDArray[np.bool_]
-    stage_ms: dict[str, F64]
-    wall_s: float
-    image_size: tuple[int, int]
-    cpu_ms: F64 = field(default_factory=lambda: np.zeros(0))
-
-    def __len__(self) -> int:
-        return len(self.stamps_ns)
-
-    @property
-    def fps(self) -> float:
-        """Frames per second of processing (images already decoded), from the total stage."""
-        total = float(np.sum(self.stage_ms["total"]))
-        return len(self) / (total * 1e-3) if total > 0 else math.inf
-
-    @property
-    def fps_cpu(self) -> float:
-        """Frames per CPU second of the processing thread (what one dedicated core would do)."""
-        total = float(np.sum(self.cpu_ms))
-        return len(self) / (total * 1e-3) if total > 0 else math.inf
-
-    def trajectory(self, frame: str = "camera") -> Trajectory:
-        """The poses as a :class:`~flightkit.datasets.trajectory.Trajectory` (``"camera"`` or ``"body"``)."""
-        from flightkit.datasets.trajectory import Trajectory
-
-        if frame not in ("camera", "body"):
-            raise EstimationError(f"trajectory frame must be 'camera' or 'body', got {frame!r}")
-        mats = self.T_world_camera if frame == "camera" else self.T_world_body
-        return Trajectory.from_matrices(self.stamps_ns, mats, name=f"{self.method}")
-
-    def write_tum(self, path: str | Path, frame: str = "camera") -> Path:
-        """Write the trajectory as a TUM file; returns the path."""
-        from flightkit.datasets.trajectory import write_tum
-
-        return write_tum(
-            path, self.trajectory(frame), header=f"flightkit vo {self.method} on {self.sequence} ({frame})"
-        )
-
-    def summary(self) -> dict[str, float]:
-        """Mean per-stage milliseconds and frames/s."""
-        out = {f"{k}_ms": float(np.mean(v)) if len(v) else 0.0 for k, v in self.stage_ms.items()}
-        out["fps"] = self.fps
-        return out
-
 
 # ---------------------------------------------------------------------------------------------
-class _Timer:
-    __slots__ = ("_cpu0", "_t", "ms")
-
-    def __init__(self) -> None:
-        self.ms = dict.fromkeys(STAGES, 0.0)
-        self._t = time.perf_counter()
-        self._cpu0 = time.thread_time()
-
-    def cpu_ms(self) -> float:
-        return (time.thread_time() - self._cpu0) * 1e3
-
-    def lap(self, stage: str) -> None:
-        now = time.perf_counter()
-        self.ms[stage] += (now - self._t) * 1e3
-        self._t = now
-
-
 def _scale_motion(T_step: F64, factor: float) -> F64:
     """Scale a relative motion (constant velocity for a different dt)."""
     if abs(factor - 1.0) < 1e-3:
@@ -605,8 +206,8 @@ class VisualOdometry:
         self.next_id = 0
         self.kf_orb: tuple[Any, F64, npt.NDArray[np.bool_]] | None = None
         # Flow state
-        self.flow_ref: _FlowRef | None = None
-        self.altitude_m = math.nan
+        self._flow = FlowEstimator(self) if self.method is Method.FLOW else None
+        self._estimator = keyframe_estimator(self) if self.method is not Method.FLOW else None
         # Local BA window: list of (T_world_kf, ids, px_undistorted, disparity_px)
         self.ba_window: list[tuple[F64, npt.NDArray[np.int64], F64, F64]] = []
         self.ba_baseline_m = float(baseline_m) if baseline_m else 0.1  # virtual baseline for depth
@@ -697,7 +298,7 @@ class VisualOdometry:
             return np.eye(4)
         return _scale_motion(self.T_step, dt_s / self.step_dt_s)
 
-    def _emit(self, stamp_ns: int, n_inl: int, q: Quality, kf: bool, timer: _Timer) -> FramePose:
+    def _emit(self, stamp_ns: int, n_inl: int, q: Quality, kf: bool, timer: FrameTimer) -> FramePose:
         timer.ms["total"] = sum(v for k, v in timer.ms.items() if k != "total")
         pose = FramePose(
             self.index,
@@ -735,8 +336,8 @@ class VisualOdometry:
             raise EstimationError(
                 f"method {self.method.value!r} needs a depth image in every frame; use 'stereo' or 'flow'"
             )
-        if self.method is Method.FLOW:
-            return self._process_flow(stamp_ns, gray, right_gray, depth_m)
+        if self._flow is not None:
+            return self._flow.process(stamp_ns, gray, right_gray, depth_m)
         return self._process_keyframe(stamp_ns, gray, right_gray, depth_m)
 
     # ------------------------------------------------------------------ keyframe methods
@@ -885,171 +486,10 @@ class VisualOdometry:
         pyr: npt.NDArray[np.uint8],
         right_gray: npt.NDArray[np.uint8] | None = None,
     ) -> Motion:
-        o = self.opts
+        """The keyframe-to-current motion by the method's estimator (``estimation.estimators``)."""
+        assert self._estimator is not None
         und_cur = self._undistort(px_cur)
-        if self.method is Method.RGBD_ESSENTIAL:
-            und_kf = self._undistort(px_kf)
-            parallax = median(np.linalg.norm(und_cur - und_kf, axis=1))
-            m = Motion(guess, np.zeros(len(px_cur), dtype=bool), False)
-            m_prior = None
-            if parallax >= o.essential_min_parallax_px:
-                if o.essential_prior_gate_px > 0 and self.T_step is not None:
-                    # The constant-velocity prediction usually explains the tracks: then no RANSAC.
-                    m_prior = essential_from_prior(
-                        und_kf,
-                        und_cur,
-                        self.K,
-                        X_kf,
-                        guess,
-                        gate_px=o.essential_prior_gate_px,
-                        threshold_px=o.essential_threshold_px,
-                        min_fraction=o.essential_prior_min_fraction,
-                        min_inliers=o.min_inliers,
-                        iterations=o.essential_prior_iterations,
-                    )
-                self.path_counts["essential-prior" if m_prior is not None else "essential-ransac"] += 1
-                m = (
-                    m_prior
-                    if m_prior is not None
-                    else essential_metric(
-                        und_kf,
-                        und_cur,
-                        self.K,
-                        X_kf,
-                        threshold_px=o.essential_threshold_px,
-                        min_inliers=o.min_inliers,
-                        cheirality=o.essential_cheirality,
-                        agree_px=2.0 * o.reproj_px,
-                    )
-                )
-            if m.ok:
-                # With little parallax or a mostly planar scene (the floor) the 5-point RANSAC
-                # can settle on a wrong motion that a few points satisfy. The keyframe's depth
-                # tells: the right motion (with its metric scale) also reprojects the 3D points
-                # of most tracks, which passed the forward-backward check. The points that
-                # reproject are the inliers (depth edges and holes, invisible to the epipolar
-                # test, drop out here).
-                agree = self._reproj_err2(m.T_cur_ref, X_kf, und_cur) < (2.0 * o.reproj_px) ** 2
-                if np.count_nonzero(agree) < max(o.min_inliers, 0.5 * len(px_cur)):
-                    m = Motion(guess, np.zeros(len(px_cur), dtype=bool), False)
-                else:
-                    # Least squares on the reprojection of those points from the 5-point motion
-                    # (as PnP's final fit; Gauss-Newton, converged), inliers re-selected, before
-                    # the polish below. Needed after the prior-guided path too: at 1-5 cm
-                    # baselines the epipolar geometry pins the translation direction only to a
-                    # few degrees, and the depth polish alone (4 Huber steps) kept that error
-                    # (ATE 0.015-0.34 m).
-                    T_lm = refine_pose(
-                        m.T_cur_ref, X_kf[agree], und_cur[agree], self.K, huber_px=_LEAST_SQUARES_PX, iterations=20
-                    )
-                    mask = agree & (self._reproj_err2(T_lm, X_kf, und_cur) < o.reproj_px**2)
-                    m = (
-                        Motion(T_lm, mask, True)
-                        if np.count_nonzero(mask) >= o.min_inliers
-                        else Motion(m.T_cur_ref, agree, True)
-                    )
-            if not m.ok and o.essential_pnp_prior and o.refine_with_depth and self.T_step is not None:
-                m_pp = self._pnp_from_prior(X_kf, px_cur, und_cur, guess, depth_m, pyr, right_gray)
-                if m_pp is not None:
-                    self.path_counts["pnp-prior"] += 1
-                    return m_pp
-            if not m.ok:
-                self.path_counts["pnp"] += 1
-                m = pnp(
-                    X_kf,
-                    und_cur,
-                    self.K,
-                    method=o.pnp_method,
-                    reproj_px=o.reproj_px,
-                    min_inliers=o.min_inliers,
-                    guess_T_cur_ref=guess,
-                    ransac_kernel=o.pnp_kernel,
-                )
-            return self._polish(m, X_kf, px_cur, und_cur, depth_m, pyr, right_gray)
-        if self.method is Method.RGBD_KABSCH:
-            assert depth_m is not None
-            z = self._depth_at(depth_m, px_cur)
-            ok = np.isfinite(z)
-            X_cur = self._backproject(und_cur, np.where(ok, z, 1.0))
-            idx = np.flatnonzero(ok)
-            all_ok = len(idx) == len(ok)  # usual: no copies of the pairs
-            X_ref = X_kf if all_ok else X_kf[idx]
-            X_cur = X_cur if all_ok else X_cur[idx]
-            # Kinect-like depth noise grows with z^2: threshold scaled by the mean squared depth.
-            zz = float(np.mean(X_ref[:, 2] ** 2)) if len(idx) else 1.0
-            thr_m = o.kabsch_threshold_m * max(1.0, zz)
-            m_rigid = None
-            if o.kabsch_prior_gate > 0 and self.T_step is not None:
-                # The constant-velocity prediction usually explains the 3D-3D pairs: then no RANSAC.
-                m_rigid = rigid_from_prior(
-                    X_ref,
-                    X_cur,
-                    guess,
-                    threshold_m=thr_m,
-                    gate_m=o.kabsch_prior_gate * thr_m,
-                    min_fraction=o.kabsch_prior_min_fraction,
-                    min_inliers=o.min_inliers,
-                )
-                self.path_counts["kabsch-prior" if m_rigid is not None else "kabsch-ransac"] += 1
-            m = (
-                m_rigid
-                if m_rigid is not None
-                else ransac_rigid(
-                    X_ref,
-                    X_cur,
-                    threshold_m=thr_m,
-                    min_inliers=o.min_inliers,
-                    rng=self.rng,
-                    first_batch=o.kabsch_first_batch,
-                )
-            )
-            mask = np.zeros(len(px_cur), dtype=bool)
-            mask[idx] = m.inliers
-            # The rigid fit weighs every point's depth noise (both frames) equally; polish it
-            # like PnP (reprojection plus this frame's depth), which also keeps the depth
-            # measurements for fusion: the per-step error fell 23-55 % on every sequence.
-            m = Motion(m.T_cur_ref, mask, m.ok)
-            if not o.kabsch_polish:
-                return m
-            return self._polish(m, X_kf, px_cur, und_cur, depth_m, pyr, right_gray, z)
-        sel = np.ones(len(px_cur), dtype=bool)
-        if self.method is Method.STEREO and o.inliers == "rigidity" and right_pyr is not None:
-            init = (self.rig.fx * self.rig.baseline_m / np.maximum(X_kf[:, 2], 1e-3)).astype(np.float32)  # type: ignore[union-attr]
-            X_cur, ok = self._points_3d(px_cur, right_pyr, pyr, None, init)
-            sel = np.zeros(len(px_cur), dtype=bool)
-            idx = np.flatnonzero(ok)
-            if len(idx) >= o.min_inliers:
-                sel[idx[rigidity_inliers(X_kf[idx], X_cur[idx], tol_m=0.05, rel_tol=0.03)]] = True
-            if np.count_nonzero(sel) < o.min_inliers:
-                sel[:] = True
-        idx = np.flatnonzero(sel)
-        if o.pnp_prior_gate_px > 0 and o.refine_with_depth and self.method is Method.RGBD_PNP:
-            # The constant-velocity prediction usually explains the tracks: then no RANSAC.
-            m_prior = self._pnp_from_prior(X_kf[idx], px_cur[idx], und_cur[idx], guess, depth_m, pyr, right_gray)
-            if m_prior is not None:
-                mask = np.zeros(len(px_cur), dtype=bool)
-                mask[idx] = m_prior.inliers
-                if self._meas is not None:
-                    self._meas = (idx[self._meas[0]], self._meas[1])
-                return Motion(m_prior.T_cur_ref, mask, True)
-        m = pnp(
-            X_kf[idx],
-            und_cur[idx],
-            self.K,
-            method=o.pnp_method,
-            reproj_px=o.reproj_px,
-            min_inliers=o.min_inliers,
-            guess_T_cur_ref=guess,
-            ransac_kernel=o.pnp_kernel,
-        )
-        mask = np.zeros(len(px_cur), dtype=bool)
-        mask[idx] = m.inliers
-        T = m.T_cur_ref
-        if m.ok and o.refine_with_depth:
-            T = self._refine(T, X_kf[mask], px_cur[mask], und_cur[mask], depth_m, pyr, right_gray)
-            if self._meas is not None:
-                self._meas = (np.flatnonzero(mask)[self._meas[0]], self._meas[1])
-        return Motion(T, mask, m.ok)
+        return self._estimator.estimate(X_kf, px_kf, px_cur, und_cur, depth_m, guess, right_pyr, pyr, right_gray)
 
     def _pnp_from_prior(
         self,
@@ -1241,7 +681,7 @@ class VisualOdometry:
         o = self.opts
         if self.method is Method.STEREO and right_gray is None:
             raise EstimationError("method 'stereo' needs the right image in every frame")
-        timer = _Timer()
+        timer = FrameTimer()
         pyr = gray
         timer.lap("track")
         if self.prev_pyr is None:
@@ -1455,177 +895,6 @@ class VisualOdometry:
         good = np.isfinite(Xk).all(axis=1) & (Xk[:, 2] > self.opts.min_depth_m)
         self.kf_X = np.where(good[:, None], Xk, self.kf_X)
 
-    # ------------------------------------------------------------------ optical-flow velocity
-    def _process_flow(
-        self,
-        stamp_ns: int,
-        gray: npt.NDArray[np.uint8],
-        right_gray: npt.NDArray[np.uint8] | None,
-        depth_m: F32 | None,
-    ) -> FramePose:
-        """Flow: track the reference frame's points into this frame, the velocity over the
-        interval since the reference from their motion, the pose = the reference pose moved
-        by that velocity for that time. The reference moves on to this frame once the points
-        moved ``flow_ref_px`` (median), too few remain, or the estimate failed."""
-        o = self.opts
-        timer = _Timer()
-        per_point_stereo = depth_m is None and o.flow_depth == "stereo"
-        if (
-            depth_m is None
-            and not per_point_stereo
-            and (self.index % max(1, o.altitude_every) == 0 or not math.isfinite(self.altitude_m))
-        ):
-            if right_gray is None or self.rig is None:
-                raise EstimationError("method 'flow' needs a depth image or a stereo pair (for the altitude)")
-            z, _ = stereo_altitude_m(gray, right_gray, self.rig.fx, self.rig.baseline_m, self.orb)
-            if math.isfinite(z) and o.min_depth_m <= z <= o.max_depth_m:
-                self.altitude_m = z
-        timer.lap("track")
-        if self.flow_ref is None:
-            self._flow_new_ref(stamp_ns, gray, right_gray, depth_m, np.empty((0, 2), np.float32), np.empty((0, 2)))
-            timer.lap("keyframe")
-            self.prev_stamp_ns = stamp_ns
-            return self._emit(stamp_ns, 0, Quality.INIT, True, timer)
-        ref = self.flow_ref
-        dt_s = max((stamp_ns - self.prev_stamp_ns) * 1e-9, 1e-4)  # since the previous frame
-        dt_ref_s = max((stamp_ns - ref.stamp_ns) * 1e-9, 1e-4)  # since the reference
-        # Each track starts where it was in the previous frame, moved as it moved then (none
-        # when the reference is the previous frame: LK's own pyramid finds the motion).
-        one_step = ref.stamp_ns == self.prev_stamp_ns
-        px, ok = track_klt(
-            ref.gray,
-            gray,
-            ref.pts,
-            o.fb_max_px,
-            self.klt_win,
-            self.klt_levels,
-            guess=None if one_step else ref.trk + ref.step_px,
-            back_levels=self.klt_back_levels,
-            max_iters=o.klt_iters,
-        )
-        tracked = np.flatnonzero(ok)
-        idx = tracked[np.isfinite(ref.Z[tracked])]  # tracked with a depth: the velocity's points
-        timer.lap("track")
-        quality = Quality.PREDICTED
-        n_inl = 0
-        T_world_cur = self.T_world_cam @ invert(self._predict(dt_s))
-        if len(idx) >= o.min_inliers:
-            x0, x1 = ref.xn[idx], self._normalised(px[idx])
-            thr = o.flow_threshold_px / self.intr.fx / dt_ref_s
-            twist, inl = velocity_ransac(
-                x0, x1, ref.Z[idx], dt_ref_s, thr, rng=self.rng, robust_iters=o.flow_robust_iters
-            )
-            if np.count_nonzero(inl) >= o.min_inliers:
-                T_ref_cur = integrate_velocity(twist, dt_ref_s)
-                if o.flow_polish:
-                    T_ref_cur = polish_motion(
-                        T_ref_cur, x0[inl], ref.Z[idx][inl], x1[inl], _FLOW_POLISH_HUBER_PX / self.intr.fx
-                    )
-                T_cand = ref.T_world_cam @ T_ref_cur
-                if self._plausible(invert(T_cand) @ self.T_world_cam, dt_s):
-                    T_world_cur = T_cand
-                    n_inl = int(np.count_nonzero(inl))
-                    quality = Quality.GOOD if n_inl >= 2 * o.min_inliers else Quality.WEAK
-        timer.lap("motion")
-        if quality is not Quality.PREDICTED:
-            self.T_step, self.step_dt_s = invert(T_world_cur) @ self.T_world_cam, dt_s
-        self.T_world_cam = T_world_cur
-        step_px = px[tracked] - ref.trk[tracked]
-        moved = px[tracked] - ref.pts[tracked]
-        renew = (
-            quality is Quality.PREDICTED
-            or len(tracked) < o.max_features // 2
-            or float(np.median(np.einsum("ij,ij->i", moved, moved))) >= o.flow_ref_px * o.flow_ref_px
-        )
-        if renew:
-            self._flow_new_ref(stamp_ns, gray, right_gray, depth_m, px[tracked], step_px)
-            timer.lap("keyframe")
-        else:
-            self.flow_ref = _FlowRef(
-                ref.gray,
-                ref.stamp_ns,
-                ref.T_world_cam,
-                ref.pts[tracked],
-                ref.xn[tracked],
-                ref.Z[tracked],
-                px[tracked],
-                step_px,
-            )
-        self.prev_stamp_ns = stamp_ns
-        return self._emit(stamp_ns, n_inl, quality, renew, timer)
-
-    def _normalised(self, px: F32) -> F64:
-        """Normalised image coordinates ``K^-1 [u, v, 1]`` (undistorted) of pixels, (N, 2)."""
-        und = self._undistort(px)
-        return np.c_[(und[:, 0] - self.intr.cx) / self.intr.fx, (und[:, 1] - self.intr.cy) / self.intr.fy]
-
-    def _flow_new_ref(
-        self,
-        stamp_ns: int,
-        gray: npt.NDArray[np.uint8],
-        right_gray: npt.NDArray[np.uint8] | None,
-        depth_m: F32 | None,
-        kept_px: F32,
-        kept_step_px: F64,
-    ) -> None:
-        """This frame becomes the flow reference: the tracks kept, topped up with new corners
-        when fewer than half remain, each with its depth here."""
-        o = self.opts
-        pts = np.ascontiguousarray(kept_px, dtype=np.float32).reshape(-1, 2)
-        step = np.asarray(kept_step_px, dtype=np.float64).reshape(-1, 2)
-        if len(pts) < o.max_features // 2:
-            mask = None
-            if len(pts):
-                mask = np.full(gray.shape, 255, np.uint8)
-                for x, y in pts:
-                    cv2.circle(mask, (int(x), int(y)), 8, 0, -1)
-            new = shi_tomasi(gray, o.max_features - len(pts), 0.01, max(5.0, self.intr.width / 60), mask)
-            pts = np.concatenate([pts, new]) if len(pts) else new
-            step = np.concatenate([step, np.zeros((len(new), 2))])
-        if depth_m is not None:
-            Z = self._depth_at(depth_m, pts)
-        elif o.flow_depth == "stereo":
-            if right_gray is None or self.rig is None:
-                raise EstimationError("flow_depth='stereo' needs the right image in every frame")
-            X, ok = self._points_3d(pts, right_gray, gray, None, self._flow_init_disparity())
-            Z = np.where(ok, X[:, 2], np.nan)
-        else:
-            Z = np.full(len(pts), self.altitude_m)
-        self.flow_ref = _FlowRef(gray, stamp_ns, self.T_world_cam.copy(), pts, self._normalised(pts), Z, pts, step)
-
-    def _flow_init_disparity(self) -> float:
-        """Disparity to start sparse stereo from: that of the current reference's median depth."""
-        assert self.rig is not None
-        ref = self.flow_ref
-        z = ref.Z[np.isfinite(ref.Z)] if ref is not None else np.empty(0)
-        return float(self.rig.fx * self.rig.baseline_m / np.median(z)) if len(z) else 0.0
-
-
-_FLOW_POLISH_HUBER_PX = 0.25
-"""Huber threshold of flow's reprojection polish: a few times the LK noise (~0.05 px on the
-synthetic patterns). Measured against 1 px with flow_ref_px 15 (point-sampling renderer): ATE
-lower on 5 of the 6 synthetic runs (e.g. the rectangle at 320x240 4.3 -> 3.8 mm), per-step
-error 5-15 % lower on all six (docs/estimation-log.md, "ninth pass")."""
-
-_LEAST_SQUARES_PX = 1e9
-"""A Huber threshold no reprojection residual reaches: plain least squares."""
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class _FlowRef:
-    """The flow method's reference frame: its image, time and pose, its points (pixels,
-    normalised coordinates, depth in metres, NaN where unknown), and where each point was
-    last tracked to and how far it moved in that frame (the next frame's guess)."""
-
-    gray: npt.NDArray[np.uint8]
-    stamp_ns: int
-    T_world_cam: F64
-    pts: F32
-    xn: F64
-    Z: F64
-    trk: F32
-    step_px: F64
-
 
 # ---------------------------------------------------------------------------------------------
 def _resize_intrinsics(intr: CameraIntrinsics, size: tuple[int, int]) -> CameraIntrinsics:
@@ -1731,7 +1000,9 @@ def run_vo(
         on_pose: called with every :class:`FramePose` (hook for live publishing).
 
     Returns:
-        :class:`VoResult`. Blocks until the sequence is processed.
+        :class:`VoResult`. Blocks until the sequence is processed. Frames whose motion could
+        not be estimated are flagged in ``quality`` and counted in a warning (logged);
+        :meth:`VoResult.check` raises when they are most of the run.
 
     Raises:
         EstimationError: unknown method, or the sequence lacks depth/stereo for it.
@@ -1800,24 +1071,7 @@ def run_vo(
             raise EstimationError(
                 f"none of the {total} frames of {sequence.name} has a {part} image; method {m.value!r} needs one"
             )
-    return collect_result(poses, m.value, sequence.name, wall, (prep.intrinsics.width, prep.intrinsics.height))
-
-
-def collect_result(poses: list[FramePose], method: str, name: str, wall_s: float, size: tuple[int, int]) -> VoResult:
-    """Stack per-frame poses into a :class:`VoResult`."""
-    if not poses:
-        raise EstimationError(f"no frames were processed for {name}; check the frame range")
-    return VoResult(
-        method=method,
-        sequence=name,
-        stamps_ns=np.array([p.stamp_ns for p in poses], dtype=np.int64),
-        T_world_camera=np.stack([p.T_world_camera for p in poses]),
-        T_world_body=np.stack([p.T_world_body for p in poses]),
-        n_inliers=np.array([p.n_inliers for p in poses], dtype=np.int64),
-        quality=np.array([int(p.quality) for p in poses], dtype=np.int8),
-        keyframe=np.array([p.keyframe for p in poses], dtype=bool),
-        stage_ms={s: np.array([p.stage_ms[s] for p in poses]) for s in STAGES},
-        wall_s=wall_s,
-        image_size=size,
-        cpu_ms=np.array([p.cpu_ms for p in poses]),
-    )
+    result = collect_result(poses, m.value, sequence.name, wall, (prep.intrinsics.width, prep.intrinsics.height))
+    if result.n_failed:
+        logger.warning("%s", result.failure_message())
+    return result

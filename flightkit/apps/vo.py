@@ -17,12 +17,21 @@ from pathlib import Path
 from typing import Any
 
 from estimation.evaluation import EvaluationReport, evaluate
+from estimation.evaluation_checks import alignment_warnings, first_pose_rotation_rmse_deg
 from estimation.pipeline import VoResult, run_vo
 from estimation.timing import TimingTable
 from flightkit.apps.sequences import SIM_PREFIX, open_dataset
 from flightkit.datasets.trajectory import Trajectory, read_trajectory
 
-__all__ = ["EvaluationReport", "VoJob", "evaluate_trajectories", "load_trajectory", "run_vo_job"]
+__all__ = [
+    "EvaluationReport",
+    "VoJob",
+    "alignment_warnings",
+    "evaluate_trajectories",
+    "first_pose_rotation_rmse_deg",
+    "load_trajectory",
+    "run_vo_job",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -116,6 +125,7 @@ class VoJob:
         out: dict[str, Any] = {
             "estimate": str(self.estimate_path),
             "frames": len(self.result),
+            "frames_not_estimated": self.result.n_failed,
             "timing": self.timing.to_dict(),
             "speed": self.speed,
         }
@@ -146,7 +156,8 @@ def run_vo_job(
     Blocks until done; ``progress(done, total)`` is called after every frame.
 
     Raises:
-        DatasetError: unreadable input. EstimationError: the method cannot run on this sequence.
+        DatasetError: unreadable input. EstimationError: the method cannot run on this sequence,
+            or could not estimate the motion of most of its frames (nothing is written then).
     """
     seq = open_dataset(dataset)
     t_start = time.perf_counter()
@@ -161,6 +172,7 @@ def run_vo_job(
         T_body_camera=getattr(seq, "T_body_camera", None),
     )
     elapsed_s = time.perf_counter() - t_start
+    result.check()  # most frames not estimated: an error, not a file of predictions
     path = out or Path(f"{seq.name}_{method}.txt")
     result.write_tum(path)
     job = VoJob(result, path, TimingTable.from_stage_ms(result.stage_ms), elapsed_s)

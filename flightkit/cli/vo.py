@@ -108,8 +108,12 @@ def run_eval(args: argparse.Namespace) -> int:
         plot_dir=args.plot_dir,
     )
     if args.json:
+        from flightkit.apps.vo import alignment_warnings, first_pose_rotation_rmse_deg
+
         out = report.to_dict()
         out["plots"] = [str(p) for p in plots]
+        out["rotation_first_pose_aligned_rmse_deg"] = first_pose_rotation_rmse_deg(report)
+        out["warnings"] = alignment_warnings(report)
         print(json.dumps(out, indent=2))
     else:
         print_report(report, plots)
@@ -156,6 +160,11 @@ def print_report(report: EvaluationReport, plots: list[Path]) -> None:
     row("lab absolute", "trans m", lab.absolute_translation)
     row("", "rot deg", lab.absolute_rotation, deg)
     console.print(table)
+    from flightkit.apps.vo import alignment_warnings, first_pose_rotation_rmse_deg
+
+    console.print(f"rotation error with the first pose aligned: {first_pose_rotation_rmse_deg(report):.3f} deg RMSE")
+    for w in alignment_warnings(report):
+        print(f"warning: {w}", file=sys.stderr)
     for p in plots:
         console.print(f"plot: {p}")
 
