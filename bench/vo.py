@@ -8,7 +8,7 @@ resolution unless ``--sizes`` asks for others, runs side by side in the same pro
 * the plain pipelines of ``estimation.baselines`` with their fixed parameters: ``plain-stereo``
   (StereoSGBM of the previous pair + GFTT + KLT + solvePnPRansac) on stereo sequences,
   ``plain-rgbd`` (ORB + depth + solvePnPRansac) on RGB-D ones. These are the bar (issue 15);
-* the lab's SIFT pipeline (``estimation.baseline``, ``baseline-pnp``), the historical reference.
+* the lab's SIFT pipeline (``estimation.lab_sift``, ``baseline-pnp``), the historical reference.
 
 Per run it prints:
 
@@ -55,9 +55,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # `bench._syntheti
 
 from bench._synthetic import METHODS as SYNTHETIC_METHODS  # noqa: E402
 from bench._synthetic import SYNTHETIC, prerendered  # noqa: E402
-from estimation.baseline import run_baseline  # noqa: E402
 from estimation.baselines import run_plain  # noqa: E402
 from estimation.evaluation import Alignment, ape, lab_errors, rpe  # noqa: E402
+from estimation.lab_sift import run_baseline  # noqa: E402
 from estimation.pipeline import Method, Quality, VoOptions, VoResult, run_vo, warm_up  # noqa: E402
 from flightkit.datasets.registry import open_sequence  # noqa: E402
 

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 import cv2
 import numpy as np
@@ -79,7 +79,7 @@ class PlainStereoVO:
             raise EstimationError(f"plain-stereo needs a positive stereo baseline, got {baseline_m} m")
         self.K = K
         self.baseline_m = baseline_m
-        self.sgbm = cv2.StereoSGBM_create(
+        self.sgbm = cv2.StereoSGBM.create(
             minDisparity=0,
             numDisparities=128,
             blockSize=5,
@@ -118,7 +118,7 @@ class PlainStereoVO:
         p0, d = p0[keep], d[keep]
         if len(p0) < _MIN_POINTS:
             return None, 0
-        p1, st, _ = cv2.calcOpticalFlowPyrLK(
+        p1, st, _ = cv2.calcOpticalFlowPyrLK(  # type: ignore[call-overload]  # the stub wants nextPts; None is valid
             left0,
             left1,
             p0.reshape(-1, 1, 2),
@@ -142,7 +142,7 @@ class PlainRgbdVO:
     def __init__(self, K: F64, dist: F64 | None = None) -> None:
         self.K = K
         self.dist = dist
-        self.orb = cv2.ORB_create(nfeatures=1500)
+        self.orb = cv2.ORB.create(nfeatures=1500)
         self.bf = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
         self.prev: tuple[F64, npt.NDArray[np.uint8], F64] | None = None  # pixels, descriptors, 3D
         self.T_world_cam = np.eye(4)
@@ -173,7 +173,7 @@ class PlainRgbdVO:
                 if T is not None:
                     self.T_world_cam = self.T_world_cam @ invert(T)
                     ok = True
-        self.prev = (pts, desc, X)
+        self.prev = (pts, cast(npt.NDArray[np.uint8], desc), X)
         return self.T_world_cam.copy(), n_inl, ok
 
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, cast
 
 import cv2
 import numpy as np
@@ -105,7 +105,7 @@ class FlowEstimator:
             o.fb_max_px,
             vo.klt_win,
             vo.klt_levels,
-            guess=None if one_step else ref.trk + ref.step_px,
+            guess=None if one_step else (ref.trk + ref.step_px).astype(np.float32),
             back_levels=vo.klt_back_levels,
             max_iters=o.klt_iters,
         )
@@ -164,7 +164,7 @@ class FlowEstimator:
         """Normalised image coordinates ``K^-1 [u, v, 1]`` (undistorted) of pixels, (N, 2)."""
         vo = self.vo
         und = vo._undistort(px)
-        return np.c_[(und[:, 0] - vo.intr.cx) / vo.intr.fx, (und[:, 1] - vo.intr.cy) / vo.intr.fy]
+        return cast(F64, np.c_[(und[:, 0] - vo.intr.cx) / vo.intr.fx, (und[:, 1] - vo.intr.cy) / vo.intr.fy])
 
     def _new_ref(
         self,
@@ -173,7 +173,7 @@ class FlowEstimator:
         right_gray: npt.NDArray[np.uint8] | None,
         depth_m: F32 | None,
         kept_px: F32,
-        kept_step_px: F64,
+        kept_step_px: npt.NDArray[np.floating[Any]],
     ) -> None:
         """This frame becomes the flow reference: the tracks kept, topped up with new corners
         when fewer than half remain, each with its depth here."""
@@ -223,4 +223,4 @@ class _FlowRef:
     xn: F64
     Z: F64
     trk: F32
-    step_px: F64
+    step_px: npt.NDArray[np.floating[Any]]  # float32 from tracking, float64 when topped up
