@@ -148,7 +148,7 @@ def test_a_fleet_recording_is_grouped_and_exported_per_vehicle(tmp_path: Path) -
     from capture.config import CaptureConfig
     from capture.export import export_vehicles
     from capture.info import recording_info
-    from capture.session import start_recording
+    from capture.bus_recorder import start_recording
     from flightkit.bus.session import open_session
     from flightkit.clock import LockstepClock
     from flightkit.config import BusConfig
