@@ -153,7 +153,9 @@ def solve_hand_eye(
     )
 
 
-def _translation(ra: Rotation, ta: npt.NDArray[np.float64], tb: npt.NDArray[np.float64], R_x: Rotation) -> npt.NDArray[np.float64]:  # noqa: N803
+def _translation(
+    ra: Rotation, ta: npt.NDArray[np.float64], tb: npt.NDArray[np.float64], R_x: Rotation  # noqa: N803
+) -> npt.NDArray[np.float64]:
     A = (ra.as_matrix() - np.eye(3)).reshape(-1, 3)  # noqa: N806
     b = (R_x.apply(tb) - ta).reshape(-1)
     t, *_ = np.linalg.lstsq(A, b, rcond=None)

@@ -58,7 +58,8 @@ class SimTimingErrors:
     def expected_offset_s(self, at_ns: int, start_ns: int) -> float:
         """Camera stamp minus mocap stamp of one instant at true time ``at_ns``: what a time calibration
         should find there."""
-        return self.camera_time_offset_s + self.camera_drift_ppm * 1e-6 * (at_ns - start_ns) / _NS - self.mocap_latency_s
+        drift_s = self.camera_drift_ppm * 1e-6 * (at_ns - start_ns) / _NS
+        return self.camera_time_offset_s + drift_s - self.mocap_latency_s
 
     @property
     def any(self) -> bool:
