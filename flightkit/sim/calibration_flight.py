@@ -83,9 +83,8 @@ def calibration_motion(
             amp[k] * 0.5 * sum(math.sin(2.0 * math.pi * t / p + phases[k, j]) for j, p in enumerate(_PERIODS_S[k]))
             for k in range(3)
         ]
-        base = Rotation.from_euler("z", yaw if follow_yaw else 0.0)
-        rock = Rotation.from_euler("ZYX", [angles[2], angles[1], angles[0]])
-        return Transform(base * rock, pos)
+        heading = yaw if follow_yaw else 0.0  # about z, before the rocking's own z-y-x turns
+        return Transform(Rotation.from_euler("ZYX", [heading + angles[2], angles[1], angles[0]]), pos)
 
     return truth
 
