@@ -97,7 +97,9 @@ def load_inputs(
     """
     reader = RecordingReader(recording)
     traj_body, topic = _body_trajectory(reader, body, lab_cfg)
-    configured = lab_cfg.camera.T_body_camera.to_transform() if lab_cfg is not None else reader.calibration().T_body_camera
+    configured = (
+        lab_cfg.camera.T_body_camera.to_transform() if lab_cfg is not None else reader.calibration().T_body_camera
+    )
     source = {"recording": str(recording), "mocap_topic": topic}
     if camera_trajectory is not None:
         cam = read_trajectory(Path(camera_trajectory))

@@ -96,7 +96,8 @@ def format_result(res: CalibrationResult) -> str:
     """The result as a two-column table."""
     rows: list[tuple[str, str]] = []
     if res.time_offset_ms is not None:
-        rows.append(("time offset (camera - mocap)", f"{res.time_offset_ms:+.2f} +- {res.time_offset_uncertainty_ms or 0:.2f} ms"))
+        sigma = res.time_offset_uncertainty_ms or 0.0
+        rows.append(("time offset (camera - mocap)", f"{res.time_offset_ms:+.2f} +- {sigma:.2f} ms"))
         drift = f"{res.drift_ppm or 0:+.1f} +- {res.drift_uncertainty_ppm or 0:.1f} ppm" if res.drift_estimated else (
             "not estimated (record at least 30 s)")
         rows.append(("camera clock drift", drift))

@@ -57,7 +57,9 @@ def with_metadata(
                 sid: writer.register_schema(s.name, s.encoding, s.data) for sid, s in sorted(summary.schemas.items())
             }
             channel_ids = {
-                cid: writer.register_channel(c.topic, c.message_encoding, schema_ids.get(c.schema_id, 0), dict(c.metadata))
+                cid: writer.register_channel(
+                    c.topic, c.message_encoding, schema_ids.get(c.schema_id, 0), dict(c.metadata)
+                )
                 for cid, c in sorted(summary.channels.items())
             }
             for _, channel, message in reader.iter_messages(log_time_order=True):
