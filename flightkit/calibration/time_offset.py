@@ -12,8 +12,9 @@ the camera's offset *minus* the mocap's latency, which is what aligning the two 
 
 Estimation, in :func:`estimate_time_offset`:
 
-1. the mocap orientation is slerped and its mean rate taken over windows as long as one camera
-   interval, on a 0.5 ms grid, so both rate series are averaged alike;
+1. the mocap orientation is smoothed (a zero-phase moving average about one camera frame long),
+   slerped, and its mean rate taken over intervals as long as the camera's rate intervals
+   (``rate_interval_s``, whole frames) on a 0.5 ms grid, so both rate series are averaged alike;
 2. coarse: the lag maximising the correlation of the two ``|omega|`` series within
    ``max_offset_s``;
 3. per time window: a scan around it, then Brent's method on the exact objective (the mocap
@@ -36,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 from scipy.optimize import minimize_scalar
-from scipy.spatial.transform import Slerp
+from scipy.spatial.transform import Rotation, Slerp
 
 from flightkit.calibration.rates import TimedOrientations, interval_rates, rotations_of
 from flightkit.errors import CalibrationError
@@ -85,6 +86,22 @@ class TimeOffsetEstimate:
         k = self.drift_ppm * 1e-6
         rel = (t_c - self.ref_ns).astype(np.float64) - self.offset_s * _NS
         return np.asarray(self.ref_ns + np.round(rel / (1.0 + k)).astype(np.int64), dtype=np.int64)
+
+
+def _smoothed(rots: Rotation, half: int) -> Rotation:
+    """A zero-phase moving average of an orientation track over ``2 * half + 1`` samples (in the
+    tangent space of each sample), so white mocap noise does not make the objective jagged."""
+    n = len(rots)
+    if half < 1 or n < 2 * half + 1:
+        return rots
+    acc = np.zeros((n, 3))
+    cnt = np.zeros(n)
+    for j in range(-half, half + 1):
+        lo, hi = max(0, -j), min(n, n - j)
+        idx = np.arange(lo, hi)
+        acc[idx] += (rots[idx].inv() * rots[idx + j]).as_rotvec()
+        cnt[idx] += 1
+    return rots * Rotation.from_rotvec(acc / cnt[:, None])
 
 
 def _mean_rate_series(
@@ -141,7 +158,9 @@ def estimate_time_offset(
     origin = int(mo_st[0])
     t_m, r_m = rotations_of(mocap, origin)
     t_c, r_c = rotations_of(camera, origin)
-    slerp = Slerp(t_m, r_m)
+    frame_s_est = float(np.median(np.diff(t_c)))
+    mocap_dt = float(np.median(np.diff(t_m)))
+    slerp = Slerp(t_m, _smoothed(r_m, round(0.5 * frame_s_est / mocap_dt)))
     frame_s = float(np.median(np.diff(t_c)))
     k = max(1, round(rate_interval_s / frame_s))
     dt_c = t_c[k:] - t_c[:-k]
@@ -220,7 +239,8 @@ def estimate_time_offset(
         curv = (objective(d_k + h) - 2 * f0 + objective(d_k - h)) / (h * h)
         n = int(sel.sum())
         s2 = f0 * n / max(1, n - 1)
-        sigma = math.sqrt(2.0 * s2 / (n * curv)) if curv > 0 else math.inf
+        # overlapping rate intervals (k frames each) share their noise: n / k independent residuals
+        sigma = math.sqrt(2.0 * s2 * k / (n * curv)) if curv > 0 else math.inf
         windows.append((float(np.mean(0.5 * (wa + wb)) - t_ref), d_k, sigma))
     if not windows:
         raise CalibrationError(
