@@ -23,6 +23,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+import numpy.typing as npt
+
 from flightkit.errors import CalibrationError
 from flightkit.frames import Transform
 
@@ -94,6 +97,19 @@ class CalibrationResult:
         if self.T_body_camera is None or self.configured_T_body_camera is None:
             return None
         return transform_difference(self.T_body_camera, self.configured_T_body_camera)
+
+    def mocap_to_camera_ns(self, stamps_ns: npt.ArrayLike) -> npt.NDArray[np.int64]:
+        """Mocap stamps moved onto the camera's clock (int64 ns): ``t + offset + drift * (t - ref)``.
+
+        Raises:
+            CalibrationError: the result has no time offset.
+        """
+        if self.time_offset_ms is None:
+            raise CalibrationError("this calibration has no time offset; run 'flightkit calibrate time'", "time offset")
+        t = np.asarray(stamps_ns, dtype=np.int64)
+        ref = self.ref_ns if self.ref_ns is not None else int(t[0]) if t.size else 0
+        shift = self.time_offset_ms * 1e6 + (self.drift_ppm or 0.0) * 1e-6 * (t - ref).astype(np.float64)
+        return np.asarray(t + np.round(shift).astype(np.int64), dtype=np.int64)
 
     def merged(self, other: CalibrationResult) -> CalibrationResult:
         """This result with every part ``other`` has replaced by ``other``'s (e.g. a time result

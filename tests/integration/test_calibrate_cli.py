@@ -88,3 +88,26 @@ def test_calibrate_refuses_a_pure_translation_with_exit_code_1(tmp_path: Path, c
     assert main(["calibrate", "time", str(rec), "--camera-trajectory", str(cam)]) == 1
     err = capsys.readouterr().err
     assert "too little rotation to tell" in err and "at least two axes" in err
+
+
+def test_export_applies_a_stored_calibration(tmp_path: Path) -> None:
+    from capture.export import export_recording
+    from flightkit.calibration import CalibrationResult
+    from flightkit.datasets.mcap_metadata import with_metadata
+    from flightkit.datasets.trajectory import read_tum
+    from tests.integration.test_capture_sources import write_lab_recording
+
+    rec = tmp_path / "lab.mcap"
+    write_lab_recording(rec, frames=12)
+    cal = CalibrationResult(time_offset_ms=5.0, drift_ppm=0.0, ref_ns=0, T_body_camera=TRUE_MOUNT)
+    calibrated = with_metadata(rec, tmp_path / "cal.mcap", METADATA_RECORD, cal.to_metadata())
+    plain = export_recording(rec, tmp_path / "plain", "tum")
+    applied = export_recording(calibrated, tmp_path / "applied", "tum")
+    assert any("calibrate" in n for n in applied.notes) and not any("calibrate" in n for n in plain.notes)
+    gt_plain = read_tum(tmp_path / "plain" / "groundtruth.txt")
+    gt_cal = read_tum(tmp_path / "applied" / "groundtruth.txt")
+    # the same mocap samples, 5 ms later on the camera's clock, seen through the calibrated mount
+    assert list(gt_cal.stamps_ns - gt_plain.stamps_ns) == [5_000_000] * len(gt_plain)
+    body = gt_plain.transform(3)  # plain export: T_body_camera from tf (identity) -> the body pose
+    assert gt_cal.transform(3).almost_equal(body @ TRUE_MOUNT, tol_m=1e-6, tol_rad=1e-6)
+    assert export_recording(calibrated, tmp_path / "off", "tum", use_calibration=False).notes == plain.notes

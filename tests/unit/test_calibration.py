@@ -285,3 +285,11 @@ def test_charuco_board_pose_from_a_synthetic_view() -> None:
     assert dm < 0.003 and ddeg < 0.5
     assert pose.reprojection_px < 1.0
     assert det.detect(np.full((480, 640), 128, np.uint8)) is None
+
+
+def test_result_moves_mocap_stamps_onto_the_camera_clock() -> None:
+    res = CalibrationResult(time_offset_ms=10.0, drift_ppm=100.0, ref_ns=T0_NS)
+    out = res.mocap_to_camera_ns([T0_NS, T0_NS + 10**10])
+    assert list(out - np.array([T0_NS, T0_NS + 10**10])) == [10_000_000, 11_000_000]
+    with pytest.raises(CalibrationError, match="no time offset"):
+        CalibrationResult().mocap_to_camera_ns([0])
