@@ -111,3 +111,22 @@ def test_export_applies_a_stored_calibration(tmp_path: Path) -> None:
     body = gt_plain.transform(3)  # plain export: T_body_camera from tf (identity) -> the body pose
     assert gt_cal.transform(3).almost_equal(body @ TRUE_MOUNT, tol_m=1e-6, tol_rad=1e-6)
     assert export_recording(calibrated, tmp_path / "off", "tum", use_calibration=False).notes == plain.notes
+
+
+def test_a_recording_sequence_reads_with_its_stored_calibration(tmp_path: Path) -> None:
+    from flightkit.calibration import CalibrationResult
+    from flightkit.datasets import open_sequence
+    from flightkit.datasets.mcap_metadata import with_metadata
+    from tests.integration.test_capture_sources import write_lab_recording
+
+    rec = tmp_path / "lab.mcap"
+    write_lab_recording(rec, frames=12)
+    cal = CalibrationResult(time_offset_ms=5.0, drift_ppm=0.0, ref_ns=0, T_body_camera=TRUE_MOUNT)
+    calibrated = with_metadata(rec, rec, METADATA_RECORD, cal.to_metadata())  # in place
+    assert calibrated == rec
+    seq = open_sequence(rec)
+    raw = open_sequence(rec, use_calibration=False)
+    assert seq.T_body_camera.almost_equal(TRUE_MOUNT)
+    gt, gt_raw = seq.groundtruth(), raw.groundtruth()
+    assert list(gt.stamps_ns - gt_raw.stamps_ns) == [5_000_000] * len(gt)
+    assert len(list(seq.frames())) == len(raw) == 12
