@@ -19,6 +19,9 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
+
+import numpy as np
 
 from flightkit.calibration import (
     METADATA_RECORD,
@@ -79,6 +82,7 @@ def load_inputs(
     size: tuple[int, int] | None = None,
     lab_cfg: LabConfig | None = None,
     progress: Callable[[int, int], None] | None = None,
+    board: str | None = None,
 ) -> CalibrationInputs:
     """The body and camera motions of a recording.
 
@@ -91,6 +95,8 @@ def load_inputs(
         size: process images at (width, height).
         lab_cfg: gives ``T_world_mocap`` and the configured ``T_body_camera`` when given.
         progress: ``progress(done, total)`` per VO frame.
+        board: a ChArUco board fixed in the room, ``"5x7:0.04:0.03[:DICT]"``: the camera's
+            motion is its pose against the board in every image that shows it, instead of VO.
 
     Raises:
         DatasetError: unreadable recording, no mocap, no camera. EstimationError: VO cannot run.
@@ -105,15 +111,39 @@ def load_inputs(
         cam = read_trajectory(Path(camera_trajectory))
         source["camera_trajectory"] = str(camera_trajectory)
         return CalibrationInputs(traj_body, cam, configured, source)
-    from estimation.pipeline import run_vo
     from flightkit.datasets import open_sequence
 
     seq = open_sequence(recording, **({"camera": camera} if camera else {}))
+    if board is not None:
+        return _board_inputs(seq, board, traj_body, configured, source)
+    from estimation.pipeline import run_vo
+
     t0 = time.perf_counter()
     result = run_vo(seq, method, size=size, progress=progress)
     vo_s = time.perf_counter() - t0
     source.update(camera_motion=f"vo {method}", camera=camera or "main")
     return CalibrationInputs(traj_body, result.trajectory("camera"), configured, source, vo_s)
+
+
+def _board_inputs(seq: Any, board: str, body: Trajectory, configured: Transform | None,
+                  source: dict[str, str]) -> CalibrationInputs:
+    from flightkit.calibration.board import CharucoBoardDetector, board_camera_poses, parse_board
+
+    k = seq.intrinsics
+    detector = CharucoBoardDetector(parse_board(board), [[k.fx, 0, k.cx], [0, k.fy, k.cy], [0, 0, 1]],
+                                    list(k.dist) or None)
+    t0 = time.perf_counter()
+    stamps, poses, errors = board_camera_poses(detector, ((f.stamp_ns, f.gray) for f in seq.frames()))
+    if len(stamps) < 10:
+        raise CalibrationError(
+            f"the board {board} was found in {len(stamps)} of {len(seq)} images; keep it in view, well lit and "
+            "sharp, and check its size and dictionary",
+            "T_body_camera",
+        )
+    source.update(camera_motion=f"charuco board {board}", board_images=str(len(stamps)),
+                  board_reprojection_px=f"{float(np.median(errors)):.3f}")
+    cam = Trajectory.from_transforms(np.asarray(stamps, dtype=np.int64), poses, "board")
+    return CalibrationInputs(body, cam, configured, source, time.perf_counter() - t0)
 
 
 def calibrate_recording(

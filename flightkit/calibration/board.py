@@ -14,6 +14,7 @@ When the OpenCV build has no ``aruco`` module, constructing the detector raises
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -24,7 +25,7 @@ import numpy.typing as npt
 from flightkit.errors import CalibrationError
 from flightkit.frames import Transform
 
-__all__ = ["BoardPose", "BoardSpec", "CharucoBoardDetector", "aruco_available"]
+__all__ = ["BoardPose", "BoardSpec", "CharucoBoardDetector", "aruco_available", "board_camera_poses", "parse_board"]
 
 
 def aruco_available() -> bool:
@@ -127,3 +128,50 @@ class CharucoBoardDetector:
         T[:3, :3] = R
         T[:3, 3] = tvec.reshape(3)
         return BoardPose(Transform.from_matrix(T), int(len(ids)), err)
+
+
+def parse_board(text: str) -> BoardSpec:
+    """``"5x7:0.04:0.03"`` or ``"5x7:0.04:0.03:DICT_4X4_50"`` (squares, square m, marker m[, dictionary]).
+
+    Raises:
+        CalibrationError: malformed text.
+    """
+    parts = text.split(":")
+    try:
+        sx, sy = (int(v) for v in parts[0].lower().split("x"))
+        spec = BoardSpec(sx, sy, float(parts[1]), float(parts[2]), parts[3] if len(parts) > 3 else "DICT_5X5_100")
+    except (ValueError, IndexError) as exc:
+        raise CalibrationError(
+            f"board {text!r} is not SQUARESxSQUARES:SQUARE_M:MARKER_M[:DICT], e.g. 5x7:0.04:0.03", "board"
+        ) from exc
+    if not (spec.squares_x >= 3 and spec.squares_y >= 3 and 0 < spec.marker_m < spec.square_m):
+        raise CalibrationError(f"board {text!r}: needs >= 3x3 squares and 0 < marker < square", "board")
+    return spec
+
+
+def board_camera_poses(
+    detector: CharucoBoardDetector,
+    images: Iterable[tuple[int, npt.NDArray[np.uint8]]],
+    max_reprojection_px: float = 2.0,
+) -> tuple[list[int], list[Transform], list[float]]:
+    """The camera's pose in the board frame (``T_board_camera``) for every image that shows the board.
+
+    Args:
+        detector: the board detector.
+        images: (stamp_ns, 8-bit grey image) pairs.
+        max_reprojection_px: detections worse than this are left out.
+
+    Returns:
+        (stamps, poses, reprojection errors) of the images kept. Blocks while detecting (~5-20 ms per image).
+    """
+    stamps: list[int] = []
+    poses: list[Transform] = []
+    errors: list[float] = []
+    for stamp, gray in images:
+        pose = detector.detect(gray)
+        if pose is None or pose.reprojection_px > max_reprojection_px:
+            continue
+        stamps.append(int(stamp))
+        poses.append(pose.T_camera_board.inverse())
+        errors.append(pose.reprojection_px)
+    return stamps, poses, errors

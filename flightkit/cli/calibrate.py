@@ -41,6 +41,9 @@ def register(subparsers: Any) -> None:
         p.add_argument("recording", type=Path, help="the .mcap recording of a calibration flight")
         p.add_argument("--camera-trajectory", type=Path, metavar="FILE",
                        help="the camera's poses (TUM) at its own stamps, instead of running VO")
+        p.add_argument("--board", metavar="SPEC",
+                       help="a ChArUco board fixed in the room, SQUARESxSQUARES:SQUARE_M:MARKER_M[:DICT] "
+                       "(e.g. 5x7:0.04:0.03): the camera's motion comes from it instead of VO")
         p.add_argument("--method", default="rgbd-pnp", help="VO method for the camera's motion (default rgbd-pnp)")
         p.add_argument("--camera", help="camera name in the recording (default: its main camera)")
         p.add_argument("--body", help="mocap body (default: the config's or the recording's)")
@@ -79,6 +82,7 @@ def run(args: argparse.Namespace) -> int:
         method=args.method,
         size=parse_size(args.size) if args.size else None,
         lab_cfg=lab,
+        board=args.board,
     )
     written = [write_calibration(result, out, recording=args.recording, force=args.force) for out in args.write]
     if args.json:

@@ -293,3 +293,38 @@ def test_result_moves_mocap_stamps_onto_the_camera_clock() -> None:
     assert list(out - np.array([T0_NS, T0_NS + 10**10])) == [10_000_000, 11_000_000]
     with pytest.raises(CalibrationError, match="no time offset"):
         CalibrationResult().mocap_to_camera_ns([0])
+
+
+@pytest.mark.skipif(not aruco_available(), reason="this OpenCV has no aruco")
+def test_hand_eye_from_a_charuco_board_fixed_in_the_room() -> None:
+    from flightkit.calibration.board import board_camera_poses, parse_board
+
+    K = np.array([[320.0, 0, 319.5], [0, 320.0, 239.5], [0, 0, 1]])  # noqa: N806
+    det = CharucoBoardDetector(parse_board("5x7:0.04:0.03"), K)
+    px = 120
+    board_img = det.image(px)
+
+    def body(t: float) -> Transform:  # rocking about three axes in place, +-12 degrees
+        a = [0.2 * math.sin(2 * math.pi * t / 2.3), 0.18 * math.sin(2 * math.pi * t / 3.1 + 1.0),
+             0.2 * math.sin(2 * math.pi * t / 3.7 + 2.0)]
+        return Transform(Rotation.from_euler("ZYX", a[::-1]), np.array([0.05 * math.sin(t), 0.0, 1.2]))
+
+    T_world_board = body(0.0) @ T_BC @ Transform(translation=np.array([-0.1, -0.14, 0.45]))  # noqa: N806
+    stamps = grid_ns(15.0, 16.0)
+    s = det.spec.square_m / px
+
+    def views():
+        for st in stamps:
+            T_cb = (body((int(st) - T0_NS) / 1e9) @ T_BC).inverse() @ T_world_board  # noqa: N806
+            R = T_cb.rotation.as_matrix()  # noqa: N806
+            H = K @ np.column_stack([R[:, 0], R[:, 1], T_cb.translation]) @ np.diag([s, s, 1.0])  # noqa: N806
+            yield int(st), cv2.warpPerspective(board_img, H, (640, 480), flags=cv2.INTER_AREA, borderValue=128)
+
+    kept, poses, errors = board_camera_poses(det, views())
+    assert len(kept) > 0.9 * len(stamps) and max(errors) < 1.0
+    camera = Trajectory.from_transforms(np.array(kept, dtype=np.int64), poses)
+    he = estimate_hand_eye(sample(body, grid_ns(120.0, 16.0)), camera)
+    dm, ddeg = transform_difference(he.T_body_camera, T_BC)
+    assert dm < 0.002 and ddeg < 0.2, (dm, ddeg)
+    with pytest.raises(CalibrationError, match="SQUARESxSQUARES"):
+        parse_board("5:0.04")
