@@ -9,8 +9,9 @@ solved here, in closed form and then refined:
 1. rotation: the rotation vectors correspond, ``rotvec(R_A) = R_X @ rotvec(R_B)``; ``R_X`` is
    their Kabsch (SVD) fit;
 2. translation: ``(R_A - I) t_X = R_X t_B - t_A``, linear least squares;
-3. both together by nonlinear least squares on the residuals of ``A X = X B`` (metres and
-   radians), starting from 1-2.
+3. pairs with more than 5x the median residual of 1-2 are left out (VO resets) and 1-2 redone;
+4. both together by nonlinear least squares on the residuals of ``A X = X B`` (metres and
+   radians), starting from there.
 
 It needs rotations about two axes that are not parallel: about one axis only, the rotation is
 free about that axis and the translation along it is unobservable; with no rotation, nothing is.
@@ -66,6 +67,8 @@ class HandEyeEstimate:
         axis_spread: how far the rotation axes are from parallel, 0 (one axis) to 1 (all
             directions): the second singular value of the angle-weighted axes over the first.
         rotation_deg: median rotation angle of the pairs, degrees.
+        outliers: pairs left out because the closed-form solution could not explain them
+            (more than 5x the median residual: a VO reset, a tracking swap).
     """
 
     T_body_camera: Transform
@@ -74,6 +77,7 @@ class HandEyeEstimate:
     pairs: int
     axis_spread: float
     rotation_deg: float
+    outliers: int = 0
 
 
 def _excitation(rotvecs_a: npt.NDArray[np.float64], min_angle_rad: float) -> tuple[npt.NDArray[np.bool_], float, float]:
@@ -133,13 +137,17 @@ def solve_hand_eye(
             "rotate the body about at least two axes (roll or pitch as well as yaw)",
             "T_body_camera",
         )
-    # 1. rotation: Kabsch on the rotation vectors (only pairs that turn carry direction)
-    H = vb[big].T @ va[big]  # noqa: N806
-    U, _, Vt = np.linalg.svd(H)  # noqa: N806
-    D = np.diag([1.0, 1.0, float(np.sign(np.linalg.det(Vt.T @ U.T)))])  # noqa: N806
-    R_x = Rotation.from_matrix(Vt.T @ D @ U.T)  # noqa: N806
-    # 2. translation: (R_A - I) t = R_X t_B - t_A
-    t_x = _translation(ra, ta, tb, R_x)
+    R_x, t_x = _closed_form(ra, ta, tb, va, vb, big)  # noqa: N806
+    # pairs the closed form cannot explain at all (a VO reset, a mocap swap) are left out
+    res_t, res_r = _residuals(ra, ta, rb, tb, R_x, t_x)
+    et, er = np.linalg.norm(res_t, axis=1), np.linalg.norm(res_r, axis=1)
+    keep = (et <= max(5.0 * float(np.median(et)), 1e-3)) & (er <= max(5.0 * float(np.median(er)), math.radians(0.05)))
+    outliers = int(n - keep.sum())
+    if outliers and keep.sum() >= 3 and (big & keep).sum() >= 3:
+        ra, rb, ta, tb, va, vb, big = ra[keep], rb[keep], ta[keep], tb[keep], va[keep], vb[keep], big[keep]
+        R_x, t_x = _closed_form(ra, ta, tb, va, vb, big)  # noqa: N806
+    else:
+        outliers = 0
     if refine:
         R_x, t_x = _refine(ra, ta, rb, tb, R_x, t_x)  # noqa: N806
     res_t, res_r = _residuals(ra, ta, rb, tb, R_x, t_x)
@@ -147,10 +155,24 @@ def solve_hand_eye(
         Transform(R_x, t_x),
         float(np.sqrt(np.mean(np.sum(res_t**2, axis=1)))),
         float(np.degrees(np.sqrt(np.mean(np.sum(res_r**2, axis=1))))),
-        n,
+        n - outliers,
         spread,
         median_deg,
+        outliers,
     )
+
+
+def _closed_form(
+    ra: Rotation, ta: npt.NDArray[np.float64], tb: npt.NDArray[np.float64], va: npt.NDArray[np.float64],
+    vb: npt.NDArray[np.float64], big: npt.NDArray[np.bool_],
+) -> tuple[Rotation, npt.NDArray[np.float64]]:
+    # 1. rotation: Kabsch on the rotation vectors (only pairs that turn carry direction)
+    H = vb[big].T @ va[big]  # noqa: N806
+    U, _, Vt = np.linalg.svd(H)  # noqa: N806
+    D = np.diag([1.0, 1.0, float(np.sign(np.linalg.det(Vt.T @ U.T)))])  # noqa: N806
+    R_x = Rotation.from_matrix(Vt.T @ D @ U.T)  # noqa: N806
+    # 2. translation: (R_A - I) t = R_X t_B - t_A
+    return R_x, _translation(ra, ta, tb, R_x)
 
 
 def _translation(

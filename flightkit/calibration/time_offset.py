@@ -65,6 +65,7 @@ class TimeOffsetEstimate:
         excitation_rad_s: standard deviation of the mocap body's ``|omega|`` over the overlap.
         windows: per window, (centre in s from ``ref_ns``, offset in s, its uncertainty in s).
         pairs: camera intervals used.
+        outliers: camera intervals left out because no lag explains their rate (VO glitches).
     """
 
     offset_s: float
@@ -77,6 +78,7 @@ class TimeOffsetEstimate:
     excitation_rad_s: float
     windows: tuple[tuple[float, float, float], ...]
     pairs: int
+    outliers: int = 0
 
     def offset_at_s(self, t_mocap_ns: int) -> float:
         """Camera minus mocap stamp at mocap time ``t_mocap_ns``, seconds."""
@@ -247,6 +249,13 @@ def estimate_time_offset(
             "time offset",
         )
 
+    # intervals the aligned body rate cannot explain (a VO glitch) are left out
+    r = w_c - np.interp(mid - d0, grid, w_grid)
+    mad = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+    good = np.abs(r - np.median(r)) <= max(6.0 * mad, 0.02)
+    outliers = int(a.size - good.sum())
+    a, b, w_c, mid = a[good], b[good], w_c[good], mid[good]
+
     # 3. windows: scan around d0, then Brent on the exact interval objective
     t_ref = 0.5 * (mid[0] + mid[-1])
     duration = float(mid[-1] - mid[0])
@@ -332,4 +341,5 @@ def estimate_time_offset(
         excitation_rad_s=excitation,
         windows=tuple(windows),
         pairs=int(a.size),
+        outliers=outliers,
     )

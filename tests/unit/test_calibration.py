@@ -328,3 +328,19 @@ def test_hand_eye_from_a_charuco_board_fixed_in_the_room() -> None:
     assert dm < 0.002 and ddeg < 0.2, (dm, ddeg)
     with pytest.raises(CalibrationError, match="SQUARESxSQUARES"):
         parse_board("5:0.04")
+
+
+def test_a_vo_reset_mid_flight_is_left_out() -> None:
+    st = grid_ns(30.0, 30.0)
+    mocap = sample(rocking, grid_ns(120.0, 30.0))
+    clean = sample(rocking, st, st + 20_000_000, right=T_BC)
+    jump = Transform.from_xyz_euler_deg([0.3, -0.1, 0.05], "xyz", [20.0, -10.0, 35.0])
+    poses = [(jump @ T if i >= 400 else T) for i, T in enumerate(clean.transforms())]  # re-initialised at frame 400
+    camera = Trajectory.from_transforms(clean.stamps_ns, poses)
+    est = estimate_time_offset(mocap, camera)
+    assert est.offset_s == pytest.approx(0.020, abs=2e-4)
+    assert est.outliers >= 1
+    he = estimate_hand_eye(mocap, camera, camera_to_body_ns=est.camera_to_mocap_ns)
+    dm, ddeg = transform_difference(he.T_body_camera, T_BC)
+    assert dm < 1e-3 and ddeg < 0.02
+    assert he.outliers >= 3  # the pairs that straddle the reset, one per step
