@@ -12,7 +12,8 @@ Core numerics (numpy/scipy, and cv2 for the board; no IO, no capability package)
 * :mod:`~flightkit.calibration.hand_eye`: ``T_body_camera`` from paired motions;
 * :mod:`~flightkit.calibration.board`: ChArUco board poses (``cv2.aruco``);
 * :mod:`~flightkit.calibration.clock_sync`: host clock offset from request/response stamps;
-* :mod:`~flightkit.calibration.latency`: p50/p99 of the capture-to-setpoint chain, pose prediction;
+* :mod:`~flightkit.calibration.latency`: p50/p99 of the capture-to-setpoint chain, pose prediction,
+  a stream's rate/age/jitter against bounds;
 * :mod:`~flightkit.calibration.result`: :class:`CalibrationResult`, JSON and recording metadata.
 
 See ``docs/calibration.md``.
@@ -20,7 +21,14 @@ See ``docs/calibration.md``.
 
 from flightkit.calibration.clock_sync import ClockOffsetEstimate, ClockSync, Exchange, estimate_clock_offset
 from flightkit.calibration.hand_eye import HandEyeEstimate, estimate_hand_eye, motion_pairs, solve_hand_eye
-from flightkit.calibration.latency import LatencyStats, latency_stats, predict_pose, velocity_from_poses
+from flightkit.calibration.latency import (
+    LatencyStats,
+    StreamHealth,
+    latency_stats,
+    predict_pose,
+    stream_health,
+    velocity_from_poses,
+)
 from flightkit.calibration.rates import AngularRates, angular_rates
 from flightkit.calibration.result import METADATA_RECORD, CalibrationResult, transform_difference
 from flightkit.calibration.time_offset import TimeOffsetEstimate, estimate_time_offset
@@ -34,6 +42,7 @@ __all__ = [
     "Exchange",
     "HandEyeEstimate",
     "LatencyStats",
+    "StreamHealth",
     "TimeOffsetEstimate",
     "angular_rates",
     "estimate_clock_offset",
@@ -43,6 +52,7 @@ __all__ = [
     "motion_pairs",
     "predict_pose",
     "solve_hand_eye",
+    "stream_health",
     "transform_difference",
     "velocity_from_poses",
 ]

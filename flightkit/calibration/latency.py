@@ -22,7 +22,15 @@ from scipy.spatial.transform import Rotation
 from flightkit.errors import CalibrationError
 from flightkit.frames import Transform
 
-__all__ = ["LatencyStats", "StageStats", "latency_stats", "predict_pose", "velocity_from_poses"]
+__all__ = [
+    "LatencyStats",
+    "StageStats",
+    "StreamHealth",
+    "latency_stats",
+    "predict_pose",
+    "stream_health",
+    "velocity_from_poses",
+]
 
 DEFAULT_STAGES = ("capture", "bus", "runner", "setpoint")
 
@@ -119,3 +127,57 @@ def predict_pose(T_world_body: Transform, vel_world_m_s: npt.ArrayLike, omega_bo
     w = np.asarray(omega_body_rad_s, dtype=np.float64)
     return Transform(T_world_body.rotation * Rotation.from_rotvec(w * latency_s),
                      T_world_body.translation + v * latency_s)
+
+
+@dataclass(frozen=True, slots=True)
+class StreamHealth:
+    """Rate, age and jitter of a stream of stamps (e.g. the mocap poses before arming).
+
+    Attributes:
+        rate_hz: samples per second over the window.
+        age_s: how old the newest sample is at ``now``.
+        jitter_ms: p99 of ``|interval - median interval|``, milliseconds.
+        samples: stamps in the window.
+    """
+
+    rate_hz: float
+    age_s: float
+    jitter_ms: float
+    samples: int
+
+    def problems(self, min_rate_hz: float, max_age_s: float, max_jitter_ms: float, what: str = "mocap") -> list[str]:
+        """Each bound the stream breaks, one sentence naming the value and the bound; empty means go."""
+        out: list[str] = []
+        if self.rate_hz < min_rate_hz:
+            out.append(f"{what} arrives at {self.rate_hz:.1f} Hz, below {min_rate_hz:g} Hz; check the mocap system's "
+                       "rate and the link to it")
+        if self.age_s > max_age_s:
+            out.append(f"the newest {what} sample is {self.age_s * 1e3:.0f} ms old, above {max_age_s * 1e3:.0f} ms; "
+                       "is the stream still flowing?")
+        if self.jitter_ms > max_jitter_ms:
+            out.append(f"{what} intervals jitter by {self.jitter_ms:.1f} ms (p99), above {max_jitter_ms:g} ms; "
+                       "check for a congested link or a busy host")
+        return out
+
+
+def stream_health(stamps_ns: npt.ArrayLike, now_ns: int, window_s: float = 2.0) -> StreamHealth:
+    """:class:`StreamHealth` of the stamps within ``window_s`` before ``now_ns`` (any order).
+
+    Raises:
+        CalibrationError: fewer than two stamps in the window.
+    """
+    st = np.sort(np.asarray(stamps_ns, dtype=np.int64))
+    st = st[st >= now_ns - round(window_s * 1e9)]
+    if st.size < 2:
+        raise CalibrationError(
+            f"{st.size} samples in the last {window_s:g} s: the stream is not flowing; check the source", "latency"
+        )
+    dt = np.diff(st).astype(np.float64) / 1e9
+    span = float(st[-1] - st[0]) / 1e9
+    jitter = np.abs(dt - float(np.median(dt)))
+    return StreamHealth(
+        rate_hz=(st.size - 1) / span if span > 0 else float("inf"),
+        age_s=float(now_ns - int(st[-1])) / 1e9,
+        jitter_ms=float(np.percentile(jitter, 99)) * 1e3,
+        samples=int(st.size),
+    )

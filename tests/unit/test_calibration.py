@@ -344,3 +344,20 @@ def test_a_vo_reset_mid_flight_is_left_out() -> None:
     dm, ddeg = transform_difference(he.T_body_camera, T_BC)
     assert dm < 1e-3 and ddeg < 0.02
     assert he.outliers >= 3  # the pairs that straddle the reset, one per step
+
+
+def test_stream_health_names_the_bound_it_breaks() -> None:
+    from flightkit.calibration import stream_health
+
+    now = T0_NS + 2 * 10**9
+    good = T0_NS + np.arange(0, 2 * 10**9, 10**9 // 100)  # 100 Hz up to 10 ms ago
+    h = stream_health(good, now)
+    assert h.rate_hz == pytest.approx(100.0, rel=1e-3) and h.age_s == pytest.approx(0.01) and h.jitter_ms < 1e-6
+    assert h.problems(min_rate_hz=50.0, max_age_s=0.05, max_jitter_ms=5.0) == []
+    bad = good[::4].copy()  # 25 Hz
+    bad[10] += 15_000_000
+    probs = stream_health(bad, now + 10**8).problems(min_rate_hz=50.0, max_age_s=0.05, max_jitter_ms=5.0)
+    assert len(probs) == 3
+    assert "below 50 Hz" in probs[0] and "above 50 ms" in probs[1] and "above 5 ms" in probs[2]
+    with pytest.raises(CalibrationError, match="not flowing"):
+        stream_health([T0_NS], now)
