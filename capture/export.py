@@ -25,7 +25,8 @@ Ground truth: the mocap body poses, placed in the **world** frame by the recordi
 ``T_world_mocap`` (``frame="world"``, the default), or left in the mocap system's frame
 (``frame="mocap"``, as TUM and EuRoC publish theirs); camera poses through the extrinsics,
 ``T_frame_camera = T_frame_body @ T_body_camera``. ``T_body_camera`` and ``T_world_mocap``
-come from the arguments, else from the recording. The recording is read through
+come from the arguments, else from the recording (its ``flightkit calibrate`` record first, whose
+time offset also moves the ground truth onto the camera's clock). The recording is read through
 :class:`~flightkit.datasets.mcap_reader.RecordingReader`; the folder formats are written by
 :mod:`flightkit.datasets.tum` and :mod:`flightkit.datasets.euroc`.
 """
@@ -44,11 +45,12 @@ import numpy as np
 import numpy.typing as npt
 
 from flightkit.bus.msgs import CameraInfo
+from flightkit.calibration.result import METADATA_RECORD, CalibrationResult
 from flightkit.datasets.euroc import euroc_sensor_yaml, write_euroc_groundtruth
 from flightkit.datasets.mcap_reader import DecodedImage, RecordingReader, decode_image
 from flightkit.datasets.trajectory import Trajectory, write_tum
 from flightkit.datasets.tum import to_tum_depth, tum_associate, write_tum_camera_yaml
-from flightkit.errors import CaptureError, DatasetError
+from flightkit.errors import CalibrationError, CaptureError, DatasetError
 from flightkit.frames import MOCAP_FRAME_ID, WORLD_FRAME_ID, Transform, WorldFrames, quat_wxyz_to_xyzw
 
 __all__ = ["ExportReport", "camera_vehicles", "export_recording", "export_vehicles"]
@@ -167,6 +169,16 @@ def _plan(
     )
 
 
+def _recorded_calibration(rec: RecordingReader) -> CalibrationResult | None:
+    record = rec.calibration().calibration.get(METADATA_RECORD)
+    if record is None:
+        return None
+    try:
+        return CalibrationResult.from_metadata(record)
+    except CalibrationError as exc:
+        raise CaptureError(f"{rec.path}: {exc}") from exc
+
+
 def _prepare_out(out_dir: Path, allow_overwrite: bool) -> None:
     if out_dir.exists() and any(out_dir.iterdir()):
         if not allow_overwrite:
@@ -197,6 +209,7 @@ def export_recording(
     vehicle: str | None = None,
     allow_overwrite: bool = False,
     progress: ProgressFn | None = None,
+    use_calibration: bool = True,
 ) -> ExportReport:
     """Write ``src`` (an MCAP recording) as a ``tum`` or ``euroc`` folder at ``out_dir``.
 
@@ -205,6 +218,10 @@ def export_recording(
         vehicle: the vehicle (bus namespace) whose camera and mocap body to export; needed when
             the recording holds several vehicles' cameras (see :func:`export_vehicles`).
         T_body_camera, T_world_mocap: override the recording's extrinsics and mocap frame.
+        use_calibration: apply the recording's ``calibration.time_extrinsics`` record (written by
+            ``flightkit calibrate --write REC.mcap``) when it has one: its ``T_body_camera``
+            (unless ``T_body_camera`` is given) and its time offset, which moves the ground
+            truth onto the camera's clock.
 
     Blocks until done; ``progress(done, total)`` is called as images are written.
 
@@ -228,6 +245,10 @@ def export_recording(
         raise CaptureError(str(exc)) from exc
     T_bc = T_body_camera or plan.T_body_camera  # noqa: N806
     report = ExportReport(out, fmt, plan.main, max_diff_s=max_diff_s, frame=frame)
+    cal = _recorded_calibration(rec) if use_calibration else None
+    if cal is not None and T_body_camera is None and cal.T_body_camera is not None:
+        T_bc = cal.T_body_camera  # noqa: N806
+        report.notes.append(f"T_body_camera from the recording's {METADATA_RECORD} record (flightkit calibrate)")
     if T_bc is None:
         T_bc = Transform()  # noqa: N806
         report.notes.append("no extrinsics in the recording: ground truth is the mocap body pose (T_body_camera = I)")
@@ -244,6 +265,13 @@ def export_recording(
     total = sum(plan.counts.get(t, 0) for t in topics)
     max_diff_ns = round(max_diff_s * 1e9)
     body_traj = plan.body_traj
+    if body_traj is not None and cal is not None and cal.time_offset_ms is not None:
+        body_traj = Trajectory(cal.mocap_to_camera_ns(body_traj.stamps_ns), body_traj.positions, body_traj.quats_wxyz,
+                               body_traj.name)
+        report.notes.append(
+            f"ground truth moved onto the camera's clock by the calibrated offset ({cal.time_offset_ms:+.2f} ms, "
+            f"drift {cal.drift_ppm or 0.0:+.1f} ppm)"
+        )
     if body_traj is not None and frame == MOCAP_FRAME_ID:
         body_traj = body_traj.left_multiplied(frames.T_world_mocap.inverse())
     images = _images(rec, topics)

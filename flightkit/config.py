@@ -257,7 +257,11 @@ class BusConfig:
 @dataclass(frozen=True, slots=True)
 class SimConfig:
     """The simulated lab. Its mocap system sits where ``[mocap.T_world_mocap]`` says the lab's
-    does, and publishes in that (mocap) frame, so consumers must apply the calibration."""
+    does, and publishes in that (mocap) frame, so consumers must apply the calibration.
+
+    Known errors for calibration to find (all off by default): the camera's time offset and
+    clock drift, the mocap's latency, and a camera mount that differs from the configured one
+    (``flightkit.sim.timing_errors``, ``docs/calibration.md``)."""
 
     speed: float = setting(1.0, min=0.01, max=1000.0, help="simulated seconds per wall second")
     mocap_rate_hz: float = setting(120.0, min=1.0, max=1000.0, help="simulated mocap rate")
@@ -265,6 +269,18 @@ class SimConfig:
     velocity_time_constant_s: float = setting(0.25, min=0.01, max=5.0, help="velocity tracking lag")
     max_accel_m_s2: float = setting(4.0, min=0.1, max=50.0, help="acceleration limit")
     wind_gust_m_s: float = setting(0.0, min=0.0, max=20.0, help="peak wind gust speed")
+    camera_time_offset_ms: float = setting(
+        0.0, min=-1000.0, max=1000.0, help="how late the simulated camera stamps its frames, ms"
+    )
+    camera_drift_ppm: float = setting(
+        0.0, min=-1000.0, max=1000.0, help="how fast the simulated camera clock runs, ppm"
+    )
+    mocap_latency_ms: float = setting(
+        0.0, min=0.0, max=500.0, help="capture-to-stamp delay of the simulated mocap poses, ms"
+    )
+    true_T_body_camera: TransformConfig | None = setting(
+        None, help="where the simulated camera really is mounted (default: camera.T_body_camera)"
+    )
 
 
 @dataclass(frozen=True, slots=True)

@@ -18,6 +18,7 @@
     ├── CaptureError           recording, recovery, export
     ├── DatasetError           an unreadable or incomplete dataset folder / recording
     ├── EstimationError        visual odometry and evaluation
+    ├── CalibrationError       a time offset / hand-eye / clock estimate the data cannot support
     ├── SafetyAbort            the supervisor ended a flight (carries the fault)
     ├── SimError               the simulated lab got impossible parameters or a call out of order
     └── ProtocolError          the serial/BLE pose-reporting protocol
@@ -37,6 +38,7 @@ from __future__ import annotations
 
 __all__ = [
     "BusError",
+    "CalibrationError",
     "CaptureError",
     "CommandRejected",
     "ConfigError",
@@ -206,6 +208,18 @@ class DatasetError(FlightkitError):
 
 class EstimationError(FlightkitError):
     """Visual odometry or its evaluation failed."""
+
+
+class CalibrationError(FlightkitError):
+    """A calibration (time offset, drift, hand-eye, clock offset) cannot be estimated from the data given.
+
+    Attributes:
+        quantity: what was being estimated, e.g. ``"time offset"`` or ``"T_body_camera"``.
+    """
+
+    def __init__(self, message: str, quantity: str = "") -> None:
+        self.quantity = quantity
+        super().__init__(message)
 
 
 class SafetyAbort(FlightkitError):

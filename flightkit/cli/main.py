@@ -39,6 +39,7 @@ COMMAND_MODULES = (
     "capture",
     "export",
     "vo",
+    "calibrate",
     "report",
     "mapserver",
 )

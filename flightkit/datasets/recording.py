@@ -17,7 +17,9 @@ Ground truth, in the world frame: the mocap body poses placed in the world by th
 names (``T_world_mocap`` from the recording's metadata, see
 :class:`~flightkit.datasets.mcap_reader.RecordingReader`), through the camera's extrinsics:
 ``T_world_camera = T_world_body @ T_body_camera``. Both transforms come from the recording
-unless the caller gives them.
+unless the caller gives them. A recording that carries a ``flightkit calibrate`` record
+(``calibration.time_extrinsics``) is read with its measured ``T_body_camera`` and with the
+ground truth moved onto the camera's clock by its measured time offset and drift.
 """
 
 from __future__ import annotations
@@ -31,11 +33,12 @@ import numpy as np
 import numpy.typing as npt
 
 from flightkit.bus.msgs import CameraInfo
+from flightkit.calibration.result import METADATA_RECORD, CalibrationResult
 from flightkit.datasets.base import CameraIntrinsics, Frame, SequenceKind, StereoRectification
 from flightkit.datasets.files import poses_at
 from flightkit.datasets.mcap_reader import RecordingReader, decode_image, header_stamp_ns
 from flightkit.datasets.trajectory import Trajectory, associate
-from flightkit.errors import DatasetError
+from flightkit.errors import CalibrationError, DatasetError
 from flightkit.frames import Transform
 
 __all__ = ["McapSequence", "open_mcap"]
@@ -55,6 +58,9 @@ class McapSequence:
         T_world_mocap: overrides the recording's mocap frame in the world.
         T_body_camera: overrides the recording's extrinsics (identity when it has none).
         max_diff_s: depth and right images are attached within this of the main image.
+        use_calibration: apply the recording's ``flightkit calibrate`` record when it has one
+            (its ``T_body_camera`` unless one is given, and its time offset, which moves the
+            ground truth onto the camera's clock).
 
     Raises:
         DatasetError: unreadable recording, no camera, no intrinsics, unknown body.
@@ -68,6 +74,7 @@ class McapSequence:
         T_world_mocap: Transform | None = None,  # noqa: N803
         T_body_camera: Transform | None = None,  # noqa: N803
         max_diff_s: float = 0.02,
+        use_calibration: bool = True,
     ) -> None:
         self.path = path
         self.name = path.stem
@@ -95,7 +102,9 @@ class McapSequence:
         if "right" in image_cams and camera != "right":
             self._topics["right"] = _image_topic(image_cams["right"])
         calib = self.reader.calibration()
-        self.T_body_camera = T_body_camera or calib.T_body_camera or Transform()
+        measured = _measured_calibration(calib.calibration) if use_calibration else None
+        from_record = measured.T_body_camera if measured is not None else None
+        self.T_body_camera = T_body_camera or from_record or calib.T_body_camera or Transform()
         self._index(path, cams, camera)
         self._gt: Trajectory | None = None
         mocap = self.reader.mocap_topics()
@@ -108,6 +117,9 @@ class McapSequence:
         if body is not None:
             frames = self.reader.world_frames(T_world_mocap)
             body_traj = self.reader.pose_trajectory(mocap[body], frames, name=f"mocap {body}")
+            if measured is not None and measured.time_offset_ms is not None:  # onto the camera's clock
+                body_traj = Trajectory(measured.mocap_to_camera_ns(body_traj.stamps_ns), body_traj.positions,
+                                       body_traj.quats_wxyz, body_traj.name)
             self._gt = body_traj.right_multiplied(self.T_body_camera).renamed("groundtruth")
 
     # ------------------------------------------------------------------ indexing
@@ -234,6 +246,16 @@ class McapSequence:
         )
 
 
+def _measured_calibration(records: dict[str, dict[str, str]]) -> CalibrationResult | None:
+    record = records.get(METADATA_RECORD)
+    if record is None:
+        return None
+    try:
+        return CalibrationResult.from_metadata(record)
+    except CalibrationError as exc:
+        raise DatasetError(f"the recording's {METADATA_RECORD} record is unusable: {exc}") from exc
+
+
 def _image_topic(topics: dict[str, str]) -> str:
     return topics.get("image") or topics["image/compressed"]
 
@@ -245,5 +267,5 @@ def _intrinsics(info: CameraInfo) -> CameraIntrinsics:
 
 def open_mcap(path: Path, **options: object) -> McapSequence:
     """Open an MCAP recording (options: ``camera``, ``mocap_body``, ``T_world_mocap``,
-    ``T_body_camera``, ``max_diff_s``)."""
+    ``T_body_camera``, ``max_diff_s``, ``use_calibration``)."""
     return McapSequence(path, **options)  # type: ignore[arg-type]

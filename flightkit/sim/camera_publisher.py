@@ -11,7 +11,10 @@ vehicle's ground-truth pose at the configured rate on the injected clock and pub
 
 Depth is aligned to colour (same camera). The camera pose is ``T_world_body @ T_body_camera``
 with the extrinsics from ``[camera] T_body_camera``; the image stamp is the truth stamp, so
-the ground truth is exact.
+the ground truth is exact. For calibration tests, ``timing`` makes the camera's clock late and
+fast (:class:`~flightkit.sim.timing_errors.SimTimingErrors`: every stamp, images and tf alike,
+is ``camera_stamp_ns`` of the capture time) and ``true_T_body_camera`` renders from a mount other
+than the configured one, which is still what tf announces.
 
 Timing: frames are due every ``1 / rate_hz`` of clock time. Rendering costs real time
 (about 25 ms at 320x240 and 200 ms at 640x480 on a laptop core), so when the clock runs
@@ -40,6 +43,7 @@ from flightkit.frames import WORLD_FRAME_ID, Transform
 from flightkit.lifetime import Running
 from flightkit.sim.camera import PinholeModel, Scene, SimCamera
 from flightkit.sim.mocap import TruthFn
+from flightkit.sim.timing_errors import SimTimingErrors
 
 __all__ = ["SimCameraPublisher"]
 
@@ -57,6 +61,8 @@ class SimCameraPublisher(Running):
         clock: the simulation's clock (the rate is in its time; frames are stamped with it).
         streams: which streams (colour, depth, stereo, tf, JPEG); defaults when None.
         scene: what to render (default: the lab with textured boxes).
+        timing: the camera clock's offset and drift (default: none).
+        true_T_body_camera: the mount rendered from (default: the configured one).
 
     Use :meth:`start`/:meth:`stop` (or ``with``); :meth:`publish_at` renders and publishes
     one frame synchronously (for scripted tests).
@@ -72,6 +78,8 @@ class SimCameraPublisher(Running):
         *,
         streams: CameraStreamSelection | None = None,
         scene: Scene | None = None,
+        timing: SimTimingErrors | None = None,
+        true_T_body_camera: Transform | None = None,  # noqa: N803
     ) -> None:
         cap = streams or CameraStreamSelection()
         if not (cap.color or cap.depth or cap.stereo):
@@ -81,6 +89,8 @@ class SimCameraPublisher(Running):
         self._keys = keys
         self.rate_hz = camera_cfg.rate_hz
         self.T_body_camera = camera_cfg.T_body_camera.to_transform()
+        self.true_T_body_camera = true_T_body_camera or self.T_body_camera
+        self.timing = timing or SimTimingErrors()
         fx, fy, cx, cy = camera_cfg.intrinsics()
         w, h = camera_cfg.width_px, camera_cfg.height_px
         self.renderer = SimCamera(
@@ -125,7 +135,7 @@ class SimCameraPublisher(Running):
 
         Returns the exact camera pose ``T_world_camera`` rendered from.
         """
-        T_world_camera = T_world_body @ self.T_body_camera  # noqa: N806
+        T_world_camera = T_world_body @ self.true_T_body_camera  # noqa: N806
         frame = self.renderer.render(T_world_camera)
         if self.color is not None:
             self.color.publish(stamp_ns, frame.color_rgb)
@@ -201,6 +211,7 @@ class SimCameraPublisher(Running):
         period = 1.0 / self.rate_hz
         lockstep = not math.isfinite(self._clock.speed)  # lock-step time waits for us: never skip
         t0 = self._clock.monotonic_s()
+        start_ns = self._clock.time_ns()  # the camera clock's own start (its drift counts from here)
         n = 0  # index of the next due frame; due times are t0 + n * period (no drift from sums)
         try:
             while not self._stop.is_set():
@@ -208,7 +219,8 @@ class SimCameraPublisher(Running):
                 if self._stop.is_set():
                     break
                 now_s = self._clock.monotonic_s()
-                self.publish_at(self._clock.time_ns(), self._truth(now_s))
+                stamp_ns = self.timing.camera_stamp_ns(self._clock.time_ns(), start_ns)
+                self.publish_at(stamp_ns, self._truth(now_s))
                 n += 1
                 behind = self._clock.monotonic_s() - (t0 + n * period)
                 if behind > period and not lockstep:

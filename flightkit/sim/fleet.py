@@ -94,6 +94,7 @@ class SimFleet(Running):
             T_world_mocap=config.mocap.T_world_mocap.to_transform(),
             rate_hz=config.sim.mocap_rate_hz,
             noise_m=config.sim.mocap_noise_m,
+            latency_s=config.sim.mocap_latency_ms / 1000.0,
         )
 
     @property

@@ -48,6 +48,7 @@ from flightkit.frames import MOCAP_FRAME_ID, Transform, WorldFrames
 from flightkit.lifetime import Running
 from flightkit.mocap.base import MocapSample
 from flightkit.mocap.source import WorldFrameSource
+from flightkit.sim.timing_errors import PoseDelay
 
 if TYPE_CHECKING:
     from flightkit.sim.lab import SimLab
@@ -75,9 +76,11 @@ class SimMocapSystem(Running):
         noise_rad: standard deviation of attitude noise per axis, radians.
         seed: seed of the noise generator (reproducible runs).
         static_bodies: other rigid bodies in the room, name -> fixed ``T_world_body``.
+        latency_s: each frame is stamped this long after its capture (a driver that stamps on
+            arrival): the pose published now is the one of ``latency_s`` ago.
 
     Raises:
-        MocapError: a rate or noise out of range, or no body.
+        MocapError: a rate, noise or latency out of range, or no body.
     """
 
     def __init__(
@@ -91,7 +94,10 @@ class SimMocapSystem(Running):
         noise_rad: float = 0.0,
         seed: int | None = 0,
         static_bodies: Mapping[str, Transform] | None = None,
+        latency_s: float = 0.0,
     ) -> None:
+        if not (math.isfinite(latency_s) and 0.0 <= latency_s <= 1.0):
+            raise MocapError(f"simulated mocap latency {latency_s!r} s is outside 0-1 s")
         if not (math.isfinite(rate_hz) and 1.0 <= rate_hz <= 2000.0):
             raise MocapError(f"simulated mocap rate {rate_hz!r} Hz is outside 1-2000 Hz; pick e.g. 120")
         if not (math.isfinite(noise_m) and noise_m >= 0.0 and math.isfinite(noise_rad) and noise_rad >= 0.0):
@@ -106,6 +112,8 @@ class SimMocapSystem(Running):
         self.noise_m = float(noise_m)
         self.noise_rad = float(noise_rad)
         self._rng = np.random.default_rng(seed)
+        self.latency_s = float(latency_s)
+        self._delays = {name: PoseDelay(self.latency_s) for name in self.bodies}
         self._static = {name: self._T_mocap_world @ T for name, T in (static_bodies or {}).items()}
         self.sinks: list[FrameSink] = []
         self._lock = threading.Lock()
@@ -185,7 +193,8 @@ class SimMocapSystem(Running):
                     samples.append(MocapSample(stamp_ns, name, MOCAP_FRAME_ID, None, False, frame, now))
                 continue
             self._tracked.add(name)
-            samples.append(MocapSample(stamp_ns, name, MOCAP_FRAME_ID, self.measure(truth(now)), True, frame, now))
+            T_true = self._delays[name](now, truth(now))  # noqa: N806
+            samples.append(MocapSample(stamp_ns, name, MOCAP_FRAME_ID, self.measure(T_true), True, frame, now))
         for name, T in self._static.items():
             samples.append(MocapSample(stamp_ns, name, MOCAP_FRAME_ID, T, True, frame, now))
         with self._lock:

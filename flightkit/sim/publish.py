@@ -23,6 +23,7 @@ from flightkit.frames import Transform
 from flightkit.lifetime import Running
 from flightkit.sim.camera_publisher import SimCameraPublisher
 from flightkit.sim.mocap import SimMocapPublisher, SimMocapSystem
+from flightkit.sim.timing_errors import SimTimingErrors
 
 if TYPE_CHECKING:
     from flightkit.sim.fleet import SimFleet
@@ -82,8 +83,8 @@ class SimLabPublishers(_Publishers):
 
     Args:
         lab: the running simulated lab.
-        lab_cfg: ``vehicle.namespace``, ``mocap.body`` and ``T_world_mocap``, ``sim`` (mocap rate
-            and noise) and ``camera``.
+        lab_cfg: ``vehicle.namespace``, ``mocap.body`` and ``T_world_mocap``, ``sim`` (mocap rate,
+            noise and latency, the camera's time offset, drift and true mount) and ``camera``.
         session: an open Zenoh session.
         camera: publish the camera (default: ``lab_cfg.camera.enabled``).
         streams: which camera streams (default: colour and depth, extrinsics on tf).
@@ -111,10 +112,21 @@ class SimLabPublishers(_Publishers):
             T_world_mocap=true_T_world_mocap or lab_cfg.mocap.T_world_mocap.to_transform(),
             rate_hz=lab_cfg.sim.mocap_rate_hz,
             noise_m=lab_cfg.sim.mocap_noise_m,
+            latency_s=lab_cfg.sim.mocap_latency_ms / 1000.0,
         )
         use_camera = lab_cfg.camera.enabled if camera is None else camera
+        sim = lab_cfg.sim
+        self.timing = SimTimingErrors(
+            sim.camera_time_offset_ms / 1000.0, sim.camera_drift_ppm, sim.mocap_latency_ms / 1000.0
+        )
+        true_mount = sim.true_T_body_camera.to_transform() if sim.true_T_body_camera is not None else None
         cameras = (
-            [SimCameraPublisher(session, keys, lab.T_world_body, lab_cfg.camera, lab.clock, streams=streams)]
+            [
+                SimCameraPublisher(
+                    session, keys, lab.T_world_body, lab_cfg.camera, lab.clock, streams=streams,
+                    timing=self.timing, true_T_body_camera=true_mount,
+                )
+            ]
             if use_camera
             else []
         )

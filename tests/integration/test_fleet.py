@@ -145,10 +145,10 @@ def test_a_fleet_recording_is_grouped_and_exported_per_vehicle(tmp_path: Path) -
     """Two simulated vehicles' mocap and cameras over a real Zenoh session into one MCAP file:
     ``capture info`` groups it by vehicle and the export writes one TUM folder per vehicle, each
     with its own vehicle's ground truth."""
+    from capture.bus_recorder import start_recording
     from capture.config import CaptureConfig
     from capture.export import export_vehicles
     from capture.info import recording_info
-    from capture.bus_recorder import start_recording
     from flightkit.bus.session import open_session
     from flightkit.clock import LockstepClock
     from flightkit.config import BusConfig
