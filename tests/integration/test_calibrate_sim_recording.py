@@ -7,8 +7,8 @@ import json
 from pathlib import Path
 
 import pytest
-from capture.session import BusRecorder, recording_metadata
 
+from capture.bus_recorder import BusRecorder, recording_metadata
 from flightkit.bus.keys import Keys
 from flightkit.bus.session import open_session
 from flightkit.calibration import CalibrationResult, transform_difference

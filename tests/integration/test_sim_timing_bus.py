@@ -5,8 +5,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from capture.session import BusRecorder
 
+from capture.bus_recorder import BusRecorder
 from flightkit.bus.keys import Keys
 from flightkit.bus.session import open_session
 from flightkit.clock import LockstepClock
