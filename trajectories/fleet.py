@@ -34,8 +34,9 @@ from pathlib import Path
 from types import TracebackType
 from typing import Self
 
+from flightkit.bus.keys import Keys
 from flightkit.clock import Clock, WallClock
-from flightkit.config import LabConfig
+from flightkit.config import LabConfig, MocapSourceKind
 from flightkit.errors import PlanError, SafetyAbort
 from flightkit.frames import Vec3Tuple
 from flightkit.link.base import VehicleLink
@@ -44,7 +45,7 @@ from trajectories.base import Pattern
 from trajectories.controller import ControllerConfig
 from trajectories.flightlog import FlightLog, FlightSummary
 from trajectories.plan import PlanSettings
-from trajectories.runner import FlightRunner, Status, open_lab_mocap
+from trajectories.runner import FlightRunner, Status
 from trajectories.separation import Approach, FleetSafety, closest_approach, plan_separation
 from trajectories.supervisor import FaultKind, Geofence, SafetyConfig
 
@@ -58,6 +59,9 @@ took it over on purpose, and the others stay clear of it as they were."""
 
 Verb = Callable[[FlightRunner, str], Awaitable[None]]
 """What a fleet verb does to one vehicle: ``verb(runner, vehicle_name)``."""
+
+_VELOCITY_BASELINE_S = 0.1
+"""Least time between the two mocap poses a vehicle's velocity is differenced from."""
 
 
 @dataclass
@@ -166,12 +170,23 @@ class Fleet:
         from flightkit.link import open_link
 
         configs = self.lab.fleet()
+        session = None
+        if self._shared_mocap is None and self.lab.mocap.source is MocapSourceKind.BUS:
+            # one bus session serves every vehicle's mocap subscription
+            from flightkit.bus.session import open_session
+
+            session = open_session(self.lab.bus)
+            self._stack.callback(session.close)
         for vcfg in configs:
             name = vcfg.vehicle.namespace
             link = await self._stack.enter_async_context(open_link(vcfg.link, vcfg.vehicle.autopilot, self.clock))
             mocap = self._shared_mocap
             if mocap is None:
-                mocap = await self._stack.enter_async_context(open_lab_mocap(vcfg, self.clock))
+                from flightkit.mocap import open_mocap
+
+                mocap = await self._stack.enter_async_context(
+                    open_mocap(vcfg.mocap, vcfg.bus, Keys(name), self.clock, session=session)
+                )
             log = None
             if self.log_dir is not None:
                 log = FlightLog(self.log_dir / f"{self.name}-{name}.csv", {"plan": self.name, "vehicle": name})
@@ -379,23 +394,32 @@ class Fleet:
     async def _watch_separation(self) -> None:
         fs = self.fleet_safety
         period_s = 1.0 / fs.check_rate_hz
-        prev: dict[str, tuple[float, Vec3Tuple]] = {}
+        # per vehicle: (stamp s, position) of the pose the velocity is differenced from; velocities
+        # come from the poses' own capture stamps over at least _VELOCITY_BASELINE_S, so a late
+        # wake-up of this task or mocap jitter does not turn into a phantom closing speed
+        ref: dict[str, tuple[float, Vec3Tuple]] = {}
+        vel: dict[str, Vec3Tuple] = {}
         while True:
             await self.clock.sleep(period_s)
             now = self.clock.monotonic_s()
             pos: dict[str, Vec3Tuple] = {}
-            vel: dict[str, Vec3Tuple] = {}
             for n, v in self.vehicles.items():
-                p = v.runner.loop.current_position()
-                if p is None or not v.runner.airborne:
-                    prev.pop(n, None)
+                pose, _age = v.runner.loop.pose(now)
+                if pose is None or not v.runner.airborne:
+                    ref.pop(n, None)
+                    vel.pop(n, None)
                     continue
+                t = pose.T_world_body.translation
+                p = (float(t[0]), float(t[1]), float(t[2]))
+                stamp_s = pose.stamp_ns * 1e-9
                 pos[n] = p
-                if n in prev and now > prev[n][0]:
-                    dt = now - prev[n][0]
-                    q = prev[n][1]
+                if n not in ref:
+                    ref[n] = (stamp_s, p)
+                elif stamp_s - ref[n][0] >= _VELOCITY_BASELINE_S:
+                    dt = stamp_s - ref[n][0]
+                    q = ref[n][1]
                     vel[n] = ((p[0] - q[0]) / dt, (p[1] - q[1]) / dt, (p[2] - q[2]) / dt)
-                prev[n] = (now, p)
+                    ref[n] = (stamp_s, p)
             approach = closest_approach(pos, vel, fs.lookahead_s)
             if approach is None:
                 continue
