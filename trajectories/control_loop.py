@@ -159,6 +159,8 @@ class _Phase:
     lookahead_s: float
     last_s: float
     t_pattern_s: float = 0.0
+    epoch_s: float | None = None  # clock time at which pattern time is 0 (a fleet's common start)
+    started: bool = False  # the pattern clock has run (a CONTINUE cycle happened)
 
 
 class ControlLoop:
@@ -206,6 +208,7 @@ class ControlLoop:
         self.in_control = False  # we command the vehicle (armed, in the offboard mode)
         self.airborne = False  # it may be off the ground (from take-off until touchdown)
         self.external_faults: tuple[Fault, ...] = ()  # raised by an outer (fleet) supervisor; latched
+        self.phase_started_s = math.nan  # clock time of the last phase's first cycle that ran its pattern clock
         self.cycle_s: list[float] = []  # wall time per control cycle
         self.cycle_cpu_s: list[float] = []  # this thread's CPU time per cycle (no waits, no steal)
         self._t0 = clock.monotonic_s()
@@ -321,7 +324,15 @@ class ControlLoop:
 
     # ------------------------------------------------------------------ the loop
 
-    def _begin(self, pattern: Pattern, phase: str, tolerate: Action, floor_m: float | None, send: bool) -> _Phase:
+    def _begin(
+        self,
+        pattern: Pattern,
+        phase: str,
+        tolerate: Action,
+        floor_m: float | None,
+        send: bool,
+        epoch_s: float | None = None,
+    ) -> _Phase:
         ctl = self.lift_controller if isinstance(pattern, LiftOff) else self.controller
         ctl.reset()
         return _Phase(
@@ -335,6 +346,7 @@ class ControlLoop:
             laps=pattern.laps if pattern.laps > 1 or phase == "pattern" else 0,
             lookahead_s=self.safety.fence_lookahead_s if self.safety.geofence.enabled else 0.0,
             last_s=self.clock.monotonic_s(),
+            epoch_s=epoch_s,
         )
 
     def tick(self, ph: _Phase) -> LogRow:
@@ -378,6 +390,12 @@ class ControlLoop:
             action = Action.HOLD if any(f.action is Action.HOLD for f in decision.faults) else Action.CONTINUE
         err = math.nan
         if action is Action.CONTINUE and pos is not None:
+            if not ph.started:
+                ph.started = True
+                self.phase_started_s = now
+                if ph.epoch_s is not None:  # on the common clock, however late this first cycle is
+                    ph.t_pattern_s = max(0.0, now - ph.epoch_s)
+                    dt = 0.0
             ph.t_pattern_s += dt
             ref = pattern.reference(ph.t_pattern_s)
             out = ph.controller.step(ref, pos, yaw, dt)
@@ -436,6 +454,7 @@ class ControlLoop:
         floor_m: float | None = None,
         timeout_s: float = math.inf,
         send: bool = True,
+        epoch_s: float | None = None,
     ) -> None:
         """Tick ``pattern`` until it is done (and ``until(t, pos)`` holds, if given), or as soon
         as ``end_when(t, pos)`` holds.
@@ -443,13 +462,14 @@ class ControlLoop:
         Faults whose action is at most ``tolerate`` are recorded but do not end the phase; HOLD
         faults pause the pattern. With ``send=False`` nothing is sent (the autopilot flies on its
         own; the loop only supervises and logs). With ``floor_m`` the tracking error is measured
-        against the reference clamped to the floor (a landing reference reaches below it).
+        against the reference clamped to the floor (a landing reference reaches below it). With
+        ``epoch_s`` pattern time runs from that clock time (vehicles sharing it fly one timeline).
 
         Raises:
             FaultExit: a fault beyond ``tolerate``. LinkTimeout: not finished within ``timeout_s``.
         """
         self.start_pose_watch()
-        ph = self._begin(pattern, phase, tolerate, floor_m, send)
+        ph = self._begin(pattern, phase, tolerate, floor_m, send, epoch_s)
         period_s = 1.0 / self.rate_hz
         start = ph.last_s
         while True:

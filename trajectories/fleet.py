@@ -60,6 +60,9 @@ took it over on purpose, and the others stay clear of it as they were."""
 Verb = Callable[[FlightRunner, str], Awaitable[None]]
 """What a fleet verb does to one vehicle: ``verb(runner, vehicle_name)``."""
 
+_START_LEAD_S = 0.25
+"""How far ahead of the moment every vehicle holds at its start the common pattern epoch is set."""
+
 _VELOCITY_BASELINE_S = 0.1
 """Least time between the two mocap poses a vehicle's velocity is differenced from."""
 
@@ -290,7 +293,9 @@ class Fleet:
     async def fly(self, patterns: Mapping[str, Pattern]) -> float:
         """Fly each named vehicle's pattern, started together; returns the start skew (s).
 
-        Every vehicle first flies to its pattern's start and holds there until all are at theirs.
+        Every vehicle first flies to its pattern's start and holds there until all are at theirs;
+        then every pattern runs on one clock epoch (a vehicle whose first cycle comes late joins the
+        common timeline). The skew returned is the spread of the vehicles' first pattern cycles.
 
         Raises:
             PlanError: the references come closer than ``min_separation_m`` (nothing moves).
@@ -307,7 +312,9 @@ class Fleet:
             )
         starts = {n: p.reference(0.0) for n, p in patterns.items()}
         await self.goto({n: r.pos_m for n, r in starts.items()}, {n: r.yaw_rad for n, r in starts.items()})
-        await self._each(list(patterns), lambda r, n: r.fly(patterns[n]))
+        # one epoch for every pattern, a few cycles ahead so every loop is waiting for it
+        start_at_s = self.clock.monotonic_s() + _START_LEAD_S
+        await self._each(list(patterns), lambda r, n: r.fly(patterns[n], start_at_s=start_at_s))
         started = [self.vehicles[n].runner.pattern_started_s for n in patterns]
         self.report.start_skew_s = max(started) - min(started) if started else math.nan
         return self.report.start_skew_s

@@ -398,8 +398,11 @@ class FlightRunner:
         self._last_target = end.pos_m
         self._last_yaw = end.yaw_rad
 
-    async def fly(self, pattern: Pattern, laps: int | None = None) -> None:
+    async def fly(self, pattern: Pattern, laps: int | None = None, *, start_at_s: float | None = None) -> None:
         """Fly ``pattern`` (``laps`` times if given); first moves to its start. Blocks until done.
+
+        With ``start_at_s`` (clock time) it holds at the start until then and runs the pattern on
+        that epoch: vehicles given the same one fly one timeline (a fleet's synchronised start).
 
         Raises:
             SafetyAbort: a fault ended the pattern (the runner has already reacted: landed, etc.).
@@ -418,8 +421,10 @@ class FlightRunner:
         first = pattern.reference(0.0)
         await self.goto(first.pos_m, first.yaw_rad)
         self._last_yaw = first.yaw_rad
-        self.pattern_started_s = self.clock.monotonic_s()
-        await self.reactor.run(lambda: self.loop.track(pattern, "pattern"))
+        if start_at_s is not None:
+            await self.hold_until(lambda: self.clock.monotonic_s() >= start_at_s, phase="sync")
+        await self.reactor.run(lambda: self.loop.track(pattern, "pattern", epoch_s=start_at_s))
+        self.pattern_started_s = self.loop.phase_started_s
         self._remember(pattern)
 
     async def hold_until(self, done: Callable[[], bool], timeout_s: float = 120.0, phase: str = "sync") -> None:
