@@ -125,20 +125,46 @@ def test_lost_separation_holds_and_lands_every_vehicle() -> None:
     asyncio.run(go())
 
 
+FORMATION = """
+[plan]
+name = "pair"
+takeoff_height_m = 1.0
+hold_before_s = 0.5
+hold_after_s = 0.5
+rate_hz = 50.0
+
+[pattern]
+kind = "line"
+points_m = [[-0.5, 0.0, 1.0], [0.5, 0.0, 1.0]]
+speed_m_s = 0.3
+yaw = "fixed"
+
+[fleet]
+min_separation_m = 0.6
+
+[vehicles.leader]
+[vehicles.wing]
+offset_m = [0.0, 0.9, 0.0]
+"""
+
+
 def test_fly_a_fleet_plan_from_the_command_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from flightkit.cli.main import main
 
-    rc = main(["fly", str(EXAMPLES / "fleet_formation.toml"), "--sim", "--speed", str(SPEED), "--log", str(tmp_path)])
+    plan = tmp_path / "pair.toml"
+    plan.write_text(FORMATION)
+    logs = tmp_path / "logs"
+    rc = main(["fly", str(plan), "--sim", "--speed", str(SPEED), "--log", str(logs)])
     out = capsys.readouterr()
     assert rc == 0, out.out + out.err
-    assert "fleet 'fleet_formation': completed" in out.out
-    for name in ("leader", "left", "right"):
-        assert f"flight 'fleet_formation/{name}': completed" in out.out
-        assert (tmp_path / f"fleet_formation-{name}.csv").stat().st_size > 10_000
+    assert "fleet 'pair': completed" in out.out
+    for name in ("leader", "wing"):
+        assert f"flight 'pair/{name}': completed" in out.out
+        assert (logs / f"pair-{name}.csv").stat().st_size > 5_000
     # one live status line per vehicle
-    assert {line.split()[0] for line in out.err.splitlines() if " t=" in line} == {"leader", "left", "right"}
+    assert {line.split()[0] for line in out.err.splitlines() if " t=" in line} == {"leader", "wing"}
     sep = float(out.out.split("min separation ")[1].split(" m")[0])
-    assert 0.8 < sep < 1.0  # the followers keep 0.9 m to the leader's sides
+    assert 0.8 < sep < 1.0  # the wing keeps 0.9 m to the leader's side
 
 
 def test_a_fleet_recording_is_grouped_and_exported_per_vehicle(tmp_path: Path) -> None:

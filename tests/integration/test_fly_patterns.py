@@ -189,11 +189,12 @@ def shortened_for_mavsdk(name: str) -> Plan:
     return plan.with_changes(settings=settings, pattern=pattern)
 
 
-# Every pattern through the MAVSDK backend, and both personalities (the pymavlink backend flies all
-# six combinations above; test_link_mavsdk.py flies MAVSDK on both personalities too).
+# The patterns through the MAVSDK backend, and both personalities (the pymavlink backend flies all
+# six combinations above; test_link_mavsdk.py flies MAVSDK on both personalities too; the circle on
+# MAVSDK and PX4 is flown by the fleet test, tests/integration/test_fleet.py, as one of its vehicles).
 @pytest.mark.parametrize(
     ("name", "autopilot"),
-    [("circle", "px4"), ("rectangle", "ardupilot"), ("lawnmower", "px4")],
+    [("rectangle", "ardupilot"), ("lawnmower", "px4")],
 )
 def test_mavsdk_backend_flies_the_patterns(name: str, autopilot: str, tmp_path: Path) -> None:
     summary = asyncio.run(fly(name, autopilot, "mavsdk", MAVSDK_SPEED, tmp_path, shortened_for_mavsdk(name)))
