@@ -211,6 +211,7 @@ class ControlLoop:
         self.phase_started_s = math.nan  # clock time of the last phase's first cycle that ran its pattern clock
         self.cycle_s: list[float] = []  # wall time per control cycle
         self.cycle_cpu_s: list[float] = []  # this thread's CPU time per cycle (no waits, no steal)
+        self.latency_s: list[float] = []  # mocap sample received -> setpoint computed from it sent
         self._t0 = clock.monotonic_s()
         self._active: set[FaultKind] = set()
         self._last_phase = ""
@@ -416,6 +417,8 @@ class ControlLoop:
         cycle = time.perf_counter() - c0
         self.cycle_cpu_s.append(cycle_cpu)
         self.cycle_s.append(cycle)
+        if ph.send and pos is not None and math.isfinite(age):
+            self.latency_s.append(age + cycle)
         if not math.isnan(err) and ph.send:
             ph.stats.add(err)
             self._last_err = err
@@ -520,6 +523,8 @@ class ControlLoop:
             summary.cycle_p50_ms, summary.cycle_p99_ms = _p50_p99_ms(self.cycle_s)
             summary.cycle_cpu_p50_ms, summary.cycle_cpu_p99_ms = _p50_p99_ms(self.cycle_cpu_s)
             summary.loop_rate_hz = self.rate_estimate()
+        if self.latency_s:
+            summary.latency_p50_ms, summary.latency_p99_ms = _p50_p99_ms(self.latency_s)
 
     async def close(self) -> None:
         """Stop watching the mocap stream; idempotent."""

@@ -95,6 +95,8 @@ class FlightSummary:
             reading the pose to handing the setpoint to the link); cycle_cpu_p50_ms /
             cycle_cpu_p99_ms: the loop thread's CPU time per cycle, i.e. the same without the
             time spent waiting for the GIL, the scheduler or a hypervisor that took the CPU.
+        latency_p50_ms / latency_p99_ms: from a mocap sample reaching this process to the setpoint
+            computed from it leaving (the sample's age at the cycle plus the cycle), per cycle.
         log_path: the flight log file (None when not logging).
     """
 
@@ -109,6 +111,8 @@ class FlightSummary:
     cycle_p99_ms: float = math.nan
     cycle_cpu_p50_ms: float = math.nan
     cycle_cpu_p99_ms: float = math.nan
+    latency_p50_ms: float = math.nan
+    latency_p99_ms: float = math.nan
     log_path: str | None = None
 
     def phase(self, name: str) -> PhaseStats:
@@ -133,6 +137,8 @@ class FlightSummary:
             "cycle_p99_ms": _r(self.cycle_p99_ms, 4),
             "cycle_cpu_p50_ms": _r(self.cycle_cpu_p50_ms, 4),
             "cycle_cpu_p99_ms": _r(self.cycle_cpu_p99_ms, 4),
+            "latency_p50_ms": _r(self.latency_p50_ms, 3),
+            "latency_p99_ms": _r(self.latency_p99_ms, 3),
             "phases": [p.to_dict() for p in self.phases],
             "faults": [f.to_dict() for f in self.faults],
             "log_path": self.log_path,
@@ -148,6 +154,10 @@ class FlightSummary:
             f"{self.laps_completed} lap(s), loop {self.loop_rate_hz:.0f} Hz "
             f"(cycle p50 {self.cycle_p50_ms:.3f} ms, p99 {self.cycle_p99_ms:.3f} ms)"
         ]
+        if not math.isnan(self.latency_p50_ms):
+            lines.append(
+                f"  mocap sample to setpoint: p50 {self.latency_p50_ms:.1f} ms, p99 {self.latency_p99_ms:.1f} ms"
+            )
         lines.append(f"  {'phase':<10} {'time s':>8} {'RMS err m':>10} {'max err m':>10}")
         for p in self.phases:
             lines.append(f"  {p.name:<10} {p.duration_s:>8.1f} {p.rms_error_m:>10.4f} {p.max_error_m:>10.4f}")

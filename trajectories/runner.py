@@ -200,13 +200,43 @@ class FlightRunner:
         """
         loop = self.loop
         await loop.mocap.wait_for_body(loop.body, self.settings.preflight_timeout_s)
+        stream = await self._watch_mocap_stream()
         pos = loop.current_position()
         problems = preflight_problems(
             self.safety, loop.body, tuple(loop.mocap.bodies()), pos is not None, self.link.telemetry, pos
         )
+        problems += stream
         if problems:
             raise SafetyAbort("preflight", "preflight failed: " + "; ".join(problems))
         logger.info("preflight ok: body %r at %s", loop.body, pos)
+
+    async def _watch_mocap_stream(self) -> list[str]:
+        """Watch the body's poses for ``preflight_mocap_window_s``: what breaks the rate, age and
+        jitter bounds of ``[safety]`` (one sentence each; empty: the stream is fit to fly on)."""
+        from flightkit.calibration.latency import stream_health
+
+        cfg, loop = self.safety, self.loop
+        window_s = cfg.preflight_mocap_window_s
+        received_ns: list[int] = []
+        last_stamp = -1
+        end_s = self.clock.monotonic_s() + window_s
+        while self.clock.monotonic_s() < end_s:
+            p = loop.mocap.latest(loop.body)
+            if p is not None and p.valid and p.stamp_ns != last_stamp:
+                last_stamp = p.stamp_ns
+                received_ns.append(round(p.received_s * 1e9))
+            await self.clock.sleep(0.002)
+        now_ns = round(self.clock.monotonic_s() * 1e9)
+        if len(received_ns) < 2:
+            return [
+                f"mocap body {loop.body!r} gave {len(received_ns)} pose(s) in {window_s:g} s; check the mocap stream"
+            ]
+        health = stream_health(received_ns, now_ns, window_s=window_s + 1.0)
+        return health.problems(
+            cfg.preflight_mocap_min_rate_hz or 0.0,
+            cfg.preflight_mocap_max_age_s or math.inf,
+            cfg.preflight_mocap_max_jitter_ms or math.inf,
+        )
 
     async def start(self, arm: bool) -> None:
         """Start the setpoint stream and get control: arm and switch mode ourselves (``arm=True``),

@@ -178,6 +178,18 @@ class SafetyConfig:
         help="check the reference this far ahead, so a breach stops the vehicle inside",
     )
     check_plan_in_fence: bool = setting(True, help="refuse plans whose references leave the geofence")
+    preflight_mocap_window_s: float = setting(
+        1.0, min=0.1, max=30.0, help="how long the mocap stream is watched before arming"
+    )
+    preflight_mocap_min_rate_hz: float = setting(
+        20.0, min=0.0, max=2000.0, help="refuse to arm below this mocap rate (0 = off)"
+    )
+    preflight_mocap_max_age_s: float = setting(
+        0.5, min=0.0, max=10.0, help="refuse to arm when the newest pose is older (0 = off)"
+    )
+    preflight_mocap_max_jitter_ms: float = setting(
+        200.0, min=0.0, max=10_000.0, help="refuse to arm when the p99 interval jitter is larger (0 = off)"
+    )
 
     @staticmethod
     def _check(obj: SafetyConfig, path: str, key: str) -> None:

@@ -273,6 +273,30 @@ def test_fault_during_ardupilots_own_liftoff_holds_then_lands(tmp_path: Path) ->
     assert not run.armed and run.height_m < 0.05
 
 
+def test_a_slow_mocap_stream_is_refused_before_arming() -> None:
+    plan = circle_plan(preflight_mocap_min_rate_hz=50.0)
+
+    async def go() -> None:
+        async with sim_session(autopilot="px4", speed=SPEED, mocap_rate_hz=20.0) as s:
+            with pytest.raises(SafetyAbort, match=r"mocap arrives at 2\d\.\d Hz, below 50 Hz") as info:
+                await fly_plan(plan, s.config, link=s.link, mocap=s.mocap, clock=s.clock, arm=True, log_path="")
+            assert info.value.reason == "preflight"
+            assert not s.lab.autopilot.armed
+        # the same stream passes the default bound (20 Hz), and the flight reports its latency
+        async with sim_session(autopilot="px4", speed=SPEED, mocap_rate_hz=30.0) as s:
+            quick = circle_plan().with_changes(
+                pattern=dataclasses.replace(circle_plan().pattern, period_s=10.0), settings=dataclasses.replace(
+                    circle_plan().settings, hold_before_s=0.0, hold_after_s=0.0
+                )
+            )
+            summary = await fly_plan(quick, s.config, link=s.link, mocap=s.mocap, clock=s.clock, arm=True, log_path="")
+            assert summary.outcome == "completed", summary.format_table()
+            assert 0.0 < summary.latency_p50_ms <= summary.latency_p99_ms, summary.format_table()
+            assert "mocap sample to setpoint: p50" in summary.format_table()
+
+    asyncio.run(go())
+
+
 def test_plan_leaving_the_fence_is_refused_before_arming(tmp_path: Path) -> None:
     plan = circle_plan(geofence=dataclasses.replace(circle_plan().safety.geofence, max_m=(0.5, 2.5, 2.5)))
 
