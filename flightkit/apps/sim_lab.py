@@ -16,10 +16,13 @@ from flightkit.bus.streams import CameraStreamSelection
 from flightkit.config import Autopilot, LabConfig
 from flightkit.sim.autopilot import AutopilotOptions
 from flightkit.sim.lab import SimEvent, SimLab
-from flightkit.sim.publish import SimLabPublishers
+from flightkit.sim.publish import SimLabPublishers, SimPublishers
 
 if TYPE_CHECKING:
+    import zenoh
+
     from flightkit.sim.fleet import SimFleet
+    from flightkit.sim.publish import SimFleetPublishers
 
 __all__ = ["SimFleetServed", "SimLabServed", "camera_streams", "serve_sim_fleet", "serve_sim_lab"]
 
@@ -71,35 +74,22 @@ def serve_sim_lab(
     Raises:
         EndpointError: the autopilot's port is in use. BusError: the bus cannot be opened.
     """
-    from flightkit.bus.session import open_session
     from flightkit.clock import SimClock
-    from flightkit.errors import FlightkitError
 
     lab = SimLab(lab_cfg, autopilot=autopilot, clock=SimClock(lab_cfg.sim.speed), options=options)
     if on_event is not None:
         lab.events.append(on_event)
     with lab:
-        pubs: SimLabPublishers | None = None
-        camera_error = ""
-        if mocap or camera:
-            session = open_session(lab_cfg.bus)
-            use_camera = camera and lab_cfg.camera.enabled
-            try:
-                pubs = SimLabPublishers(
-                    lab, lab_cfg, session, camera=use_camera, streams=camera_streams(lab_cfg), owns_session=True
-                )
-            except FlightkitError as exc:  # the sim still runs without the camera
-                camera_error = str(exc)
-                pubs = SimLabPublishers(lab, lab_cfg, session, camera=False, owns_session=True)
-            pubs.start()
-        try:
+
+        def make(session: zenoh.Session, use_camera: bool) -> SimLabPublishers:
+            streams = camera_streams(lab_cfg) if use_camera else None
+            return SimLabPublishers(lab, lab_cfg, session, camera=use_camera, streams=streams, owns_session=True)
+
+        def ready(keys: tuple[str, ...], camera_error: str) -> None:
             if on_ready is not None:
-                on_ready(SimLabServed(lab, tuple(pubs.keys) if pubs is not None else (), camera_error))
-            while not stop.wait(0.5):
-                pass
-        finally:
-            if pubs is not None:
-                pubs.stop()
+                on_ready(SimLabServed(lab, keys, camera_error))
+
+        _publish_until_stopped(lab_cfg, stop, mocap or camera, camera, make, ready)
 
 
 @dataclass(frozen=True, slots=True)
@@ -138,8 +128,6 @@ def serve_sim_fleet(
     Raises:
         EndpointError: a port is in use. BusError: the bus cannot be opened.
     """
-    from flightkit.bus.session import open_session
-    from flightkit.errors import FlightkitError
     from flightkit.sim.fleet import SimFleet
     from flightkit.sim.publish import SimFleetPublishers
 
@@ -150,27 +138,49 @@ def serve_sim_fleet(
         for name, lab in fleet.labs.items():
             lab.events.append(_tagged(on_event, name))
     with fleet:
-        pubs: SimFleetPublishers | None = None
-        camera_error = ""
-        if mocap or camera:
-            session = open_session(lab_cfg.bus)
-            use_camera = camera and lab_cfg.camera.enabled
-            try:
-                pubs = SimFleetPublishers(
-                    fleet, session, camera=use_camera, streams=camera_streams(lab_cfg), owns_session=True
-                )
-            except FlightkitError as exc:  # the fleet still runs without cameras
-                camera_error = str(exc)
-                pubs = SimFleetPublishers(fleet, session, camera=False, owns_session=True)
-            pubs.start()
-        try:
+
+        def make(session: zenoh.Session, use_camera: bool) -> SimFleetPublishers:
+            streams = camera_streams(lab_cfg) if use_camera else None
+            return SimFleetPublishers(fleet, session, camera=use_camera, streams=streams, owns_session=True)
+
+        def ready(keys: tuple[str, ...], camera_error: str) -> None:
             if on_ready is not None:
-                on_ready(SimFleetServed(fleet, tuple(pubs.keys) if pubs is not None else (), camera_error))
-            while not stop.wait(0.5):
-                pass
-        finally:
-            if pubs is not None:
-                pubs.stop()
+                on_ready(SimFleetServed(fleet, keys, camera_error))
+
+        _publish_until_stopped(lab_cfg, stop, mocap or camera, camera, make, ready)
+
+
+def _publish_until_stopped(
+    lab_cfg: LabConfig,
+    stop: threading.Event,
+    publish: bool,
+    camera: bool,
+    make: Callable[[zenoh.Session, bool], SimPublishers],
+    ready: Callable[[tuple[str, ...], str], None],
+) -> None:
+    """Publish (``make`` the publishers on a new session) until ``stop`` is set; without a camera
+    when the camera cannot start (``ready`` is told why)."""
+    from flightkit.bus.session import open_session
+    from flightkit.errors import FlightkitError
+
+    pubs = None
+    camera_error = ""
+    if publish:
+        session = open_session(lab_cfg.bus)
+        use_camera = camera and lab_cfg.camera.enabled
+        try:
+            pubs = make(session, use_camera)
+        except FlightkitError as exc:  # the sim still runs without the camera
+            camera_error = str(exc)
+            pubs = make(session, False)
+        pubs.start()
+    try:
+        ready(tuple(pubs.keys) if pubs is not None else (), camera_error)
+        while not stop.wait(0.5):
+            pass
+    finally:
+        if pubs is not None:
+            pubs.stop()
 
 
 def _tagged(on_event: Callable[[str, SimEvent], None], name: str) -> Callable[[SimEvent], None]:

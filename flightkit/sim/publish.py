@@ -29,12 +29,12 @@ if TYPE_CHECKING:
     from flightkit.sim.fleet import SimFleet
     from flightkit.sim.lab import SimLab
 
-__all__ = ["SimFleetPublishers", "SimLabPublishers"]
+__all__ = ["SimFleetPublishers", "SimLabPublishers", "SimPublishers"]
 
 logger = logging.getLogger(__name__)
 
 
-class _Publishers(Running):
+class SimPublishers(Running):
     """A mocap system's publisher and camera publishers on one session; started and stopped together."""
 
     def __init__(
@@ -78,7 +78,7 @@ class _Publishers(Running):
             self.session.close()
 
 
-class SimLabPublishers(_Publishers):
+class SimLabPublishers(SimPublishers):
     """Mocap (and camera) of a simulated lab, published on a bus session.
 
     Args:
@@ -133,7 +133,7 @@ class SimLabPublishers(_Publishers):
         super().__init__(session, system, SimMocapPublisher(session, keys, system), cameras, owns_session)
 
 
-class SimFleetPublishers(_Publishers):
+class SimFleetPublishers(SimPublishers):
     """Every vehicle of a simulated fleet on a bus session: its mocap system (each body under its
     vehicle's namespace) and, with ``camera``, one camera per vehicle. Arguments as
     :class:`SimLabPublishers`."""
