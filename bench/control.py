@@ -210,7 +210,7 @@ async def _hover(
     """Take off, hold ``hold_s`` and land; the hold's (wall, CPU) seconds per cycle."""
     from flightkit.clock import WallClock
     from flightkit.link import open_link
-    from trajectories.runner import open_lab_mocap
+    from trajectories.fly import open_lab_mocap
 
     clock = WallClock()
     async with open_link(cfg.link, cfg.vehicle.autopilot, clock) as link, open_lab_mocap(cfg, clock) as mocap:

@@ -43,9 +43,9 @@ from flightkit.errors import ConfigError, PlanError, SafetyAbort
 from flightkit.frames import Vec3Tuple
 from flightkit.mocap.base import MocapSource
 from trajectories.base import Pattern, Reference
+from trajectories.control_loop import Status
 from trajectories.flightlog import FlightSummary
 from trajectories.plan import CircleSpec, LawnmowerSpec, PatternSpec, Plan, parse_plan
-from trajectories.runner import Status
 from trajectories.separation import FleetSafety, plan_separation
 
 __all__ = [

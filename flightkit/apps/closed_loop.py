@@ -297,7 +297,7 @@ async def fly_closed_loop(
     from flightkit.sim.publish import SimLabPublishers
     from trajectories.controller import OutputFrame
     from trajectories.flightlog import read_flight_log
-    from trajectories.runner import fly_plan
+    from trajectories.fly import fly_plan
 
     say = progress or (lambda _s: None)
     out = Path(out_dir)

@@ -12,10 +12,11 @@ from collections.abc import Callable
 from pathlib import Path
 
 from flightkit.config import Autopilot, LabConfig, LinkBackend, MocapSourceKind
+from trajectories.control_loop import Status
 from trajectories.flightlog import FlightSummary
+from trajectories.fly import fly_plan
 from trajectories.plan import Plan, load_plan
 from trajectories.plots import plot_flight_log
-from trajectories.runner import Status, fly_plan
 
 __all__ = ["FlightSummary", "Plan", "Status", "fly", "lab_with_overrides", "load_plan", "plot_log"]
 
@@ -58,7 +59,7 @@ async def fly(
     (where the script always arms: nobody holds a transmitter); blocks until the flight ends.
 
     Raises:
-        MocapBodyMissing, SafetyAbort, LinkError, ConfigError: see ``trajectories.runner.fly_plan``.
+        MocapBodyMissing, SafetyAbort, LinkError, ConfigError: see ``trajectories.fly.fly_plan``.
     """
     if sim:
         from flightkit.apps.sim_session import fly_plan_in_sim

@@ -28,9 +28,10 @@ from flightkit.config import Autopilot, LabConfig, LinkBackend
 from flightkit.link.base import VehicleLink
 from flightkit.sim.lab import SimLab
 from flightkit.sim.mocap import SimMocapSource
+from trajectories.control_loop import Status
 from trajectories.flightlog import FlightSummary
+from trajectories.fly import fly_plan
 from trajectories.plan import Plan
-from trajectories.runner import Status, fly_plan
 
 if TYPE_CHECKING:
     from flightkit.sim.fleet import SimFleet
@@ -160,7 +161,7 @@ async def fly_plan_in_sim(
     Args:
         arm: arm from the script (default True: there is no pilot in the simulator).
         on_session: called with the session once connected (fault injection, watching).
-        The rest as :func:`sim_session` and :func:`trajectories.runner.fly_plan`.
+        The rest as :func:`sim_session` and :func:`trajectories.fly.fly_plan`.
 
     Returns:
         The flight summary (``outcome`` tells how it ended).
