@@ -217,12 +217,13 @@ class FlightRunner:
         received_ns: list[int] = []
         last_stamp = -1
         end_s = self.clock.monotonic_s() + window_s
+        loop.start_pose_watch()  # wake on each new pose instead of polling
         while self.clock.monotonic_s() < end_s:
             p = loop.mocap.latest(loop.body)
             if p is not None and p.valid and p.stamp_ns != last_stamp:
                 last_stamp = p.stamp_ns
                 received_ns.append(round(p.received_s * 1e9))
-            await self.clock.sleep(0.002)
+            await loop.wait_tick(min(0.05, max(0.0, end_s - self.clock.monotonic_s())))
         now_ns = round(self.clock.monotonic_s() * 1e9)
         if len(received_ns) < 2:
             return [

@@ -12,7 +12,7 @@ dropout of one body.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 
 from flightkit.bus.keys import Keys
 from flightkit.clock import ONE_PROCESS_WALL_STEP_S, Clock, SimClock
@@ -109,17 +109,6 @@ class SimFleet(Running):
     def body_of(self, name: str) -> str:
         """The mocap body of vehicle ``name``."""
         return self._bodies[name]
-
-    def client_configs(self) -> Mapping[str, LabConfig]:
-        """Per vehicle, the lab config a client uses to reach it (its link URL resolved); call after
-        :meth:`start` (the autopilots' ports are picked then)."""
-        out = {}
-        for vcfg in self.config.fleet():
-            lab = self.labs[vcfg.vehicle.namespace]
-            out[vcfg.vehicle.namespace] = dataclasses.replace(
-                vcfg, link=dataclasses.replace(vcfg.link, url=lab.client_url)
-            )
-        return out
 
     def client_config(self) -> LabConfig:
         """The whole fleet's lab config with every vehicle's link URL resolved (after :meth:`start`)."""
