@@ -28,7 +28,7 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 from flightkit.clock import Clock
-from flightkit.errors import CommandRejected, LinkError, LinkTimeout, PlanError, SafetyAbort
+from flightkit.errors import CommandRejected, LinkError, LinkTimeout, MocapError, PlanError, SafetyAbort
 from flightkit.frames import Vec3Tuple
 from flightkit.link.base import LandedState, VehicleLink
 from flightkit.mocap.base import MocapSource
@@ -215,15 +215,19 @@ class FlightRunner:
         cfg, loop = self.safety, self.loop
         window_s = cfg.preflight_mocap_window_s
         received_ns: list[int] = []
-        last_stamp = -1
-        end_s = self.clock.monotonic_s() + window_s
-        loop.start_pose_watch()  # wake on each new pose instead of polling
-        while self.clock.monotonic_s() < end_s:
-            p = loop.mocap.latest(loop.body)
-            if p is not None and p.valid and p.stamp_ns != last_stamp:
-                last_stamp = p.stamp_ns
-                received_ns.append(round(p.received_s * 1e9))
-            await loop.wait_tick(min(0.05, max(0.0, end_s - self.clock.monotonic_s())))
+
+        async def collect() -> None:  # every pose in arrival order: none is missed between wake-ups
+            async for p in loop.mocap.poses(loop.body):
+                if p.valid:
+                    received_ns.append(round(p.received_s * 1e9))
+
+        collector = asyncio.ensure_future(collect())
+        try:
+            await self.clock.sleep(window_s)
+        finally:
+            collector.cancel()
+            with contextlib.suppress(asyncio.CancelledError, MocapError):
+                await collector
         now_ns = round(self.clock.monotonic_s() * 1e9)
         if len(received_ns) < 2:
             return [
