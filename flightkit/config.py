@@ -390,6 +390,34 @@ class LabConfig:
             out.append(dataclasses.replace(self, vehicle=vehicle, link=link, mocap=mocap, vehicles=()))
         return tuple(out)
 
+    def check_shared_links(self) -> None:
+        """Before connecting: vehicles naming one link URL must each give a system id and use pymavlink.
+
+        Raises:
+            ConfigError: naming the vehicle and what to change.
+        """
+        configs = self.fleet()
+        by_url: dict[str, list[int]] = {}
+        for i, c in enumerate(configs):
+            by_url.setdefault(c.link.url.strip(), []).append(i)
+        for url, idx in by_url.items():
+            if len(idx) < 2:
+                continue
+            for i in idx:
+                c = configs[i]
+                if c.link.backend is LinkBackend.MAVSDK:
+                    raise ConfigError(
+                        self.source_path, f"vehicles[{i}].backend", f"{c.vehicle.namespace} shares {url} with "
+                        "other vehicles", "the MAVSDK backend opens one connection per vehicle; use backend = "
+                        "pymavlink for a shared radio", c.link.backend.value,
+                    )
+                if not c.link.system_id:
+                    raise ConfigError(
+                        self.source_path, f"vehicles[{i}].system_id", f"{c.vehicle.namespace} shares {url} with "
+                        "other vehicles but names no system id", "give each vehicle on a shared link its "
+                        "autopilot's system id (SYSID_THISMAV / MAV_SYS_ID)", 0,
+                    )
+
     def vehicle_entry(self, name: str) -> FleetVehicleConfig | None:
         """The ``[[vehicles]]`` entry named ``name`` (None in a one-vehicle lab or when absent)."""
         return next((v for v in self.vehicles if v.name == name), None)

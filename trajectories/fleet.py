@@ -173,6 +173,7 @@ class Fleet:
     async def _open(self) -> None:
         from flightkit.link import open_link
 
+        self.lab.check_shared_links()
         configs = self.lab.fleet()
         session = None
         if self._shared_mocap is None and self.lab.mocap.source is MocapSourceKind.BUS:

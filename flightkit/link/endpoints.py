@@ -46,6 +46,8 @@ logger = logging.getLogger(__name__)
 
 _EXAMPLES = "udpin:0.0.0.0:14540, udpout:127.0.0.1:14540, tcp:127.0.0.1:5760, tcpin:0.0.0.0:5760 or /dev/ttyACM0:57600"
 _MAX_DATAGRAM = 65535
+_UDP_RCVBUF_BYTES = 1 << 20  # room for a fleet's telemetry while the reader waits for the GIL
+_DRAIN_DATAGRAMS = 64  # datagrams one recv() returns at most (one parse, one wake for the batch)
 
 
 class EndpointKind(enum.Enum):
@@ -223,7 +225,11 @@ class Transport(Protocol):
         ...
 
     def recv(self, timeout_s: float) -> bytes:
-        """Wait up to ``timeout_s`` (wall time) for bytes; b"" if none arrived."""
+        """Wait up to ``timeout_s`` (wall time) for bytes; b"" if none arrived.
+
+        Raises:
+            EndpointError: the transport is dead (serial device gone, TCP connection closed).
+        """
         ...
 
     @property
@@ -289,6 +295,39 @@ def _resolve(endpoint: Endpoint, kind: socket.SocketKind) -> tuple[int, tuple[st
     return family, (str(addr[0]), int(addr[1]))
 
 
+def _udp_socket(family: int) -> socket.socket:
+    sock = socket.socket(family, socket.SOCK_DGRAM)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, _UDP_RCVBUF_BYTES)
+    except OSError:  # the OS caps it; the default still works
+        pass
+    return sock
+
+
+def _recv_batch(sock: socket.socket, timeout_s: float) -> tuple[bytes, tuple[str, int] | None]:
+    """Wait up to ``timeout_s`` for a datagram, then take those already queued from the same sender.
+
+    Returns (their bytes joined, the sender), or (b"", None) when none arrived.
+    """
+    if not _wait_readable(sock, timeout_s):
+        return b"", None
+    chunks: list[bytes] = []
+    sender: tuple[str, int] | None = None
+    for _ in range(_DRAIN_DATAGRAMS):
+        try:  # the first datagram is waiting; later ones only if already queued (peeked first)
+            data, addr = sock.recvfrom(_MAX_DATAGRAM, (socket.MSG_PEEK | socket.MSG_DONTWAIT) if chunks else 0)
+        except OSError:  # none queued, or e.g. ICMP port unreachable on Linux: nobody listens yet
+            break
+        addr_t = (str(addr[0]), int(addr[1]))
+        if chunks:
+            if addr_t != sender:
+                break  # another sender's datagram stays queued for the next call
+            sock.recv(_MAX_DATAGRAM, socket.MSG_DONTWAIT)
+        chunks.append(data)
+        sender = addr_t
+    return b"".join(chunks), sender
+
+
 def _wait_readable(sock: socket.socket, timeout_s: float) -> bool:
     try:
         ready, _, _ = select.select([sock], [], [], max(0.0, timeout_s))
@@ -303,7 +342,7 @@ class _UdpIn:
     def __init__(self, endpoint: Endpoint) -> None:
         self._endpoint = endpoint
         family, addr = _resolve(endpoint, socket.SOCK_DGRAM)
-        self._sock = socket.socket(family, socket.SOCK_DGRAM)
+        self._sock = _udp_socket(family)
         try:
             self._sock.bind(addr)
         except OSError as exc:
@@ -327,15 +366,11 @@ class _UdpIn:
         self._pinned = True
 
     def recv(self, timeout_s: float) -> bytes:
-        if not _wait_readable(self._sock, timeout_s):
-            return b""
-        try:
-            data, addr = self._sock.recvfrom(_MAX_DATAGRAM)
-        except OSError:
-            return b""
-        self.last_sender = (str(addr[0]), int(addr[1]))
-        if not self._pinned:
-            self._peer = self.last_sender
+        data, sender = _recv_batch(self._sock, timeout_s)
+        if sender is not None:
+            self.last_sender = sender
+            if not self._pinned:
+                self._peer = sender
         return data
 
     def send(self, data: bytes) -> None:
@@ -356,7 +391,7 @@ class _UdpOut:
     def __init__(self, endpoint: Endpoint) -> None:
         self._endpoint = endpoint
         family, self._addr = _resolve(endpoint, socket.SOCK_DGRAM)
-        self._sock = socket.socket(family, socket.SOCK_DGRAM)
+        self._sock = _udp_socket(family)
         self._sock.bind(("::" if family == socket.AF_INET6 else "0.0.0.0", 0))
         self.last_sender: tuple[str, int] | None = None
 
@@ -372,13 +407,9 @@ class _UdpOut:
         """No-op: an outgoing UDP link always sends to its configured address."""
 
     def recv(self, timeout_s: float) -> bytes:
-        if not _wait_readable(self._sock, timeout_s):
-            return b""
-        try:
-            data, addr = self._sock.recvfrom(_MAX_DATAGRAM)
-        except OSError:  # e.g. ICMP port unreachable reported on Linux; nobody listens yet
-            return b""
-        self.last_sender = (str(addr[0]), int(addr[1]))
+        data, sender = _recv_batch(self._sock, timeout_s)
+        if sender is not None:
+            self.last_sender = sender
         return data
 
     def send(self, data: bytes) -> None:
@@ -430,8 +461,8 @@ class _TcpClient:
         except OSError:
             data = b""
         if not data:
-            logger.warning("%s: the autopilot closed the TCP connection", self._endpoint.url)
             self._closed = True
+            raise EndpointError(f"{self._endpoint.url}: the autopilot closed the TCP connection")
         return data
 
     def send(self, data: bytes) -> None:
@@ -564,8 +595,7 @@ class _Serial:
                 return b""
             return bytes(self._port.read(max(1, self._port.in_waiting)))
         except (OSError, ValueError, self._serial_exception) as exc:
-            logger.debug("serial read failed: %s", exc)
-            return b""
+            raise EndpointError(f"serial device {self._endpoint.device} stopped answering ({exc})") from exc
 
     def send(self, data: bytes) -> None:
         try:

@@ -1,33 +1,62 @@
-"""The wire under the pymavlink backend: one endpoint, its codec and its reader thread.
+"""The wire under the pymavlink backend: one endpoint shared by every vehicle on it.
 
-:class:`MavlinkConnection` opens the transport (:mod:`flightkit.link.endpoints`), builds
-pymavlink's MAVLink 2 codec (ArduPilot dialect, a superset of common) for each direction,
-applies message signing when a key is configured, and runs the **reader thread**: it owns
-the transport's receive side, parses packets, hands each message to the
-:class:`~flightkit.link.mavlink.telemetry.VehicleState` and wakes its waiters, and sends our
-HEARTBEAT at 1 Hz. :meth:`MavlinkConnection.send` may be called from any thread.
+Several vehicles can sit behind one endpoint: a telemetry radio on a serial port, or a router
+(mavlink-router, MAVProxy, the simulator's ``--shared-link``) forwarding several system ids
+to one UDP port. The process opens each endpoint once: :class:`MavlinkConnection` owns the
+transport (:mod:`flightkit.link.endpoints`), pymavlink's MAVLink 2 codec (ArduPilot dialect, a
+superset of common) for each direction, signing when a key is configured, and the **reader
+thread**. The reader parses every packet once and hands it to the
+:class:`~flightkit.link.mavlink.telemetry.VehicleState` of the vehicle whose system id sent it
+(heartbeats of autopilots nobody claimed go to every vehicle, so a vehicle that waits for
+another id can name what answered), wakes that vehicle's waiters, and sends our HEARTBEAT at
+1 Hz, once for the whole link.
+
+Each link holds a :class:`VehicleChannel`: it attaches its state to the endpoint's connection
+(opening it on first use), sends on its behalf (messages carry their own ``target_system``),
+counts its packets, and detaches on close; the connection closes with its last vehicle. When
+the transport dies (a radio unplugged, a pseudo-terminal closed) every vehicle on it fails with
+the same message. A listening endpoint on port 0 is never shared (each asks for a fresh port).
 """
 
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import logging
 import threading
+from dataclasses import dataclass
 from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from flightkit.clock import Clock
+from flightkit.errors import EndpointError, LinkError
 from flightkit.link.endpoints import Endpoint, Transport, open_transport
 from flightkit.link.mavlink.encoding import MAV_AUTOPILOT_INVALID, MAV_STATE_ACTIVE
 from flightkit.link.mavlink.telemetry import VehicleState
 from flightkit.link.signing import SigningSettings, apply_signing, signing_timestamp
 
-__all__ = ["MavlinkConnection"]
+__all__ = ["LinkIdentity", "MavlinkConnection", "VehicleChannel"]
 
 logger = logging.getLogger(__name__)
 
 _READER_POLL_S = 0.01  # wall seconds per transport poll (bounds heartbeat jitter and close latency)
+
+
+@dataclass(frozen=True, slots=True)
+class LinkIdentity:
+    """Who we are on a link; the vehicles that share an endpoint's connection share it.
+
+    Attributes:
+        source_system, source_component: our MAVLink ids.
+        heartbeat_type: the MAV_TYPE our HEARTBEAT announces.
+        signing: MAVLink 2 signing key and link id, or None for unsigned.
+    """
+
+    source_system: int
+    source_component: int
+    heartbeat_type: int
+    signing: SigningSettings | None
 
 
 class _TransportWriter:
@@ -41,63 +70,114 @@ class _TransportWriter:
 
 
 class MavlinkConnection:
-    """One MAVLink endpoint with its reader thread.
+    """One MAVLink endpoint, its reader thread and the vehicles on it.
 
     Args:
         endpoint: where to listen or connect.
         clock: time source of the heartbeat period, message stamps and signing timestamps.
-        source_system, source_component: our MAVLink identity.
-        heartbeat_type: the MAV_TYPE our HEARTBEAT announces.
-        signing: MAVLink 2 signing key and link id, or None for unsigned.
-        state: receives every parsed message (``handle``) and a ``wake`` after each batch.
+        identity: our ids, heartbeat type and signing.
+
+    Get one through :meth:`VehicleChannel.open`, which shares it by endpoint URL.
     """
 
-    def __init__(
-        self,
-        endpoint: Endpoint,
-        clock: Clock,
-        source_system: int,
-        source_component: int,
-        heartbeat_type: int,
-        signing: SigningSettings | None,
-        state: VehicleState,
-    ) -> None:
+    def __init__(self, endpoint: Endpoint, clock: Clock, identity: LinkIdentity) -> None:
         self.endpoint = endpoint
+        self.identity = identity
         self._clock = clock
-        self._source = (source_system, source_component)
-        self._hb_type = heartbeat_type
-        self._signing = signing
-        self._state = state
         self._transport: Transport | None = None
         self._tx: Any = None  # pymavlink MAVLink used for sending (under _tx_lock)
         self._rx: Any = None  # pymavlink MAVLink used for parsing (reader thread only)
         self._tx_lock = threading.Lock()
         self._reader: threading.Thread | None = None
         self._stop_reader = threading.Event()
-        self.packets_sent = 0
+        self._opening: concurrent.futures.Future[None] | None = None
+        self._routes_lock = threading.Lock()
+        self._by_system: dict[int, VehicleState] = {}
+        self._any: VehicleState | None = None  # a lone vehicle that takes the first autopilot heard
+        self.failure: str | None = None  # why the transport died (every vehicle on it fails)
         self.local_port = 0  # our local UDP/TCP port (0 before open and for serial)
 
+    # ------------------------------------------------------------------ vehicles
+
     @property
-    def opened(self) -> bool:
-        """True once :meth:`open` succeeded (and still after :meth:`close`)."""
-        return self._transport is not None
+    def vehicles(self) -> int:
+        """How many vehicles are attached."""
+        with self._routes_lock:
+            return len(self._by_system) + (self._any is not None)
+
+    def attach(self, state: VehicleState, system_id: int | None) -> None:
+        """Route the messages of ``system_id`` (None: of the first autopilot heard) to ``state``.
+
+        Raises:
+            LinkError: the endpoint already serves that system id, or a vehicle without a system id
+                would share it.
+        """
+        url = self.endpoint.url
+        with self._routes_lock:
+            if self._any is not None or (system_id is None and self._by_system):
+                raise LinkError(
+                    f"several vehicles share {url} but one has no link.system_id; give each vehicle on a shared "
+                    "link its autopilot's system id (SYSID_THISMAV / MAV_SYS_ID)"
+                )
+            if system_id is None:
+                self._any = state
+                return
+            if system_id in self._by_system:
+                raise LinkError(
+                    f"two vehicles on {url} name system id {system_id}; give each vehicle its own autopilot's "
+                    "system id"
+                )
+            self._by_system[system_id] = state
+
+    def detach(self, state: VehicleState) -> int:
+        """Stop routing to ``state``; returns how many vehicles remain."""
+        with self._routes_lock:
+            if self._any is state:
+                self._any = None
+            for sysid in [s for s, st in self._by_system.items() if st is state]:
+                del self._by_system[sysid]
+            return len(self._by_system) + (self._any is not None)
+
+    def _states(self) -> list[VehicleState]:
+        with self._routes_lock:
+            return [*self._by_system.values(), *([self._any] if self._any is not None else [])]
+
+    # ------------------------------------------------------------------ lifetime
 
     async def open(self, timeout_s: float) -> None:
-        """Open the endpoint and start the reader thread; returns once it runs.
+        """Open the endpoint and start the reader thread, once; later callers wait for the first.
 
         Raises:
             EndpointError: the endpoint cannot be opened (port in use, no such device).
         """
-        self._transport = await asyncio.to_thread(open_transport, self.endpoint, timeout_s)
-        self.local_port = self._transport.local_port
-        writer = _TransportWriter(self._transport)
-        self._tx = mavlink2.MAVLink(writer, *self._source)
-        self._rx = mavlink2.MAVLink(None, *self._source)
+        with self._routes_lock:
+            first = self._opening is None
+            if first:
+                self._opening = concurrent.futures.Future()
+            opening = self._opening
+        assert opening is not None
+        if not first:
+            await asyncio.wrap_future(opening)
+            return
+        try:
+            transport = await asyncio.to_thread(open_transport, self.endpoint, timeout_s)
+        except BaseException as exc:
+            opening.set_exception(exc)
+            raise
+        self._start(transport)
+        opening.set_result(None)
+
+    def _start(self, transport: Transport) -> None:
+        self._transport = transport
+        self.local_port = transport.local_port
+        ident = self.identity
+        self._tx = mavlink2.MAVLink(_TransportWriter(transport), ident.source_system, ident.source_component)
+        self._rx = mavlink2.MAVLink(None, ident.source_system, ident.source_component)
         self._rx.robust_parsing = True
-        if self._signing is not None:
+        if ident.signing is not None:
             now_ns = self._clock.time_ns()
-            apply_signing(self._tx, self._signing, now_ns)
-            apply_signing(self._rx, self._signing, now_ns)
+            apply_signing(self._tx, ident.signing, now_ns)
+            apply_signing(self._rx, ident.signing, now_ns)
         self._stop_reader.clear()
         self._reader = threading.Thread(
             target=self._read_loop, name=f"mavlink-reader {self.endpoint.url}", daemon=True
@@ -117,31 +197,39 @@ class MavlinkConnection:
                 self._transport.close()
 
     def pin_last_sender(self) -> None:
-        """Reply only to the address the last packet came from (the autopilot's)."""
-        sender = self._transport.last_sender if self._transport is not None else None
-        if sender is not None and self._transport is not None:
-            self._transport.pin_peer(sender)
+        """Reply only to the address the last packet came from (the autopilot's, or its router's)."""
+        transport = self._transport
+        sender = transport.last_sender if transport is not None else None
+        if sender is not None and transport is not None:
+            transport.pin_peer(sender)
 
-    def send(self, msg: Any) -> None:
-        """Send one message (any thread); dropped silently once closed."""
+    def send(self, msg: Any) -> bool:
+        """Send one message (any thread); False (dropped) once closed or dead."""
         with self._tx_lock:
             if self._tx is None:
-                return
-            if self._signing is not None:
+                return False
+            signing = self.identity.signing
+            if signing is not None:
                 # pymavlink counts the timestamp up by one per packet; keep it at least at "now"
                 # so an autopilot that restarts still accepts us as a fresh stream.
                 self._tx.signing.timestamp = max(
                     self._tx.signing.timestamp, signing_timestamp(self._clock.time_ns())
                 )
             self._tx.send(msg)
-            self.packets_sent += 1
+            return True
+
+    # ------------------------------------------------------------------ reader thread
 
     def _read_loop(self) -> None:
         transport = self._transport
         assert transport is not None
         next_hb_s = self._clock.monotonic_s()
         while not self._stop_reader.is_set():
-            data = transport.recv(_READER_POLL_S)
+            try:
+                data = transport.recv(_READER_POLL_S)
+            except EndpointError as exc:
+                self._fail(str(exc))
+                return
             if data:
                 try:
                     msgs = self._rx.parse_buffer(data) or []
@@ -149,16 +237,159 @@ class MavlinkConnection:
                     logger.debug("MAVLink parse error: %s", exc)
                     msgs = []
                 if msgs:
-                    now = self._clock.monotonic_s()
-                    for msg in msgs:
-                        self._state.handle(msg, now)
-                    self._state.wake()
+                    self._route(msgs)
             now = self._clock.monotonic_s()
             if now >= next_hb_s:
                 self._send_heartbeat()
                 next_hb_s = max(next_hb_s + 1.0, now + 0.5)
 
+    def _route(self, msgs: list[Any]) -> None:
+        now = self._clock.monotonic_s()
+        with self._routes_lock:
+            by_system, lone = self._by_system, self._any
+            woken: set[int] = set()
+            for msg in msgs:
+                state = lone if lone is not None else by_system.get(msg.get_srcSystem())
+                if state is not None:
+                    state.handle(msg, now)
+                    woken.add(id(state))
+                elif msg.get_type() in ("HEARTBEAT", "BAD_DATA"):
+                    # nobody's autopilot: every vehicle hears it (and can name it when it waits for another id)
+                    for other in by_system.values():
+                        other.handle(msg, now)
+            states = [s for s in by_system.values() if id(s) in woken]
+            if lone is not None and id(lone) in woken:
+                states.append(lone)
+        for state in states:
+            state.wake()
+
+    def _fail(self, why: str) -> None:
+        states = self._states()
+        with self._routes_lock:
+            ids = sorted(self._by_system)
+        who = f"system{'s' if len(ids) > 1 else ''} {', '.join(map(str, ids))}" if ids else "its vehicle"
+        self.failure = (
+            f"the link {self.endpoint.url} failed ({why}); every vehicle on it ({who}) lost its connection: "
+            "check the radio or cable, then reconnect"
+        )
+        logger.error("%s", self.failure)
+        with self._tx_lock:
+            self._tx = None
+        for state in states:
+            state.fail(self.failure)
+
     def _send_heartbeat(self) -> None:
         self.send(
-            mavlink2.MAVLink_heartbeat_message(self._hb_type, MAV_AUTOPILOT_INVALID, 0, 0, MAV_STATE_ACTIVE, 3)
+            mavlink2.MAVLink_heartbeat_message(
+                self.identity.heartbeat_type, MAV_AUTOPILOT_INVALID, 0, 0, MAV_STATE_ACTIVE, 3
+            )
         )
+
+
+# ---------------------------------------------------------------------- sharing by URL
+
+_shared_lock = threading.Lock()
+_shared: dict[tuple[str, LinkIdentity], MavlinkConnection] = {}
+
+
+def _share_key(endpoint: Endpoint, identity: LinkIdentity) -> tuple[str, LinkIdentity] | None:
+    """The key vehicles on one endpoint share, or None when each must open its own. A client with
+    another identity (a second ground station in this process) opens its own connection."""
+    if endpoint.listens and endpoint.port == 0:
+        return None
+    return endpoint.url, identity
+
+
+class VehicleChannel:
+    """One vehicle's use of an endpoint: its state attached to the (shared) connection.
+
+    Args:
+        endpoint: where its autopilot is reached.
+        clock: time source (the connection takes the first vehicle's).
+        identity: our ids, heartbeat type and signing on this link.
+        state: receives this vehicle's messages.
+        system_id: the vehicle's autopilot system id (None: the first autopilot heard; the
+            endpoint is then not shared).
+    """
+
+    def __init__(
+        self,
+        endpoint: Endpoint,
+        clock: Clock,
+        identity: LinkIdentity,
+        state: VehicleState,
+        system_id: int | None,
+    ) -> None:
+        self.endpoint = endpoint
+        self._clock = clock
+        self._identity = identity
+        self._state = state
+        self._system_id = system_id
+        self._conn: MavlinkConnection | None = None
+        self._attached = False
+        self.packets_sent = 0
+
+    @property
+    def opened(self) -> bool:
+        """True once :meth:`open` succeeded (and still after :meth:`close`)."""
+        return self._conn is not None
+
+    @property
+    def local_port(self) -> int:
+        """Our local UDP/TCP port (0 before open and for serial)."""
+        return self._conn.local_port if self._conn is not None else 0
+
+    @property
+    def shared_with(self) -> int:
+        """How many vehicles use this endpoint (this one included; 0 before open)."""
+        return self._conn.vehicles if self._conn is not None else 0
+
+    async def open(self, timeout_s: float) -> None:
+        """Attach to the endpoint's connection, opening it if this is its first vehicle.
+
+        Raises:
+            EndpointError: the endpoint cannot be opened. LinkError: the vehicle cannot share it
+                (see :meth:`MavlinkConnection.attach`).
+        """
+        key = _share_key(self.endpoint, self._identity)
+        with _shared_lock:
+            conn = _shared.get(key) if key is not None else None
+            if conn is None or conn.failure is not None:
+                conn = MavlinkConnection(self.endpoint, self._clock, self._identity)
+                if key is not None:
+                    _shared[key] = conn
+            conn.attach(self._state, self._system_id)
+        try:
+            await conn.open(timeout_s)
+        except BaseException:
+            await self._release(conn)
+            raise
+        self._conn = conn
+        self._attached = True
+
+    async def close(self) -> None:
+        """Detach; the connection closes with its last vehicle. Idempotent."""
+        if self._attached and self._conn is not None:
+            self._attached = False
+            await self._release(self._conn)
+
+    async def _release(self, conn: MavlinkConnection) -> None:
+        with _shared_lock:
+            left = conn.detach(self._state)
+            if left == 0:
+                key = _share_key(self.endpoint, self._identity)
+                if key is not None and _shared.get(key) is conn:
+                    del _shared[key]
+        if left == 0:
+            await conn.close()
+
+    def pin_last_sender(self) -> None:
+        """Reply only to the address the autopilot's packets come from (reader thread)."""
+        if self._conn is not None:
+            self._conn.pin_last_sender()
+
+    def send(self, msg: Any) -> None:
+        """Send one message on this vehicle's behalf (any thread); dropped once closed."""
+        conn = self._conn
+        if conn is not None and self._attached and conn.send(msg):
+            self.packets_sent += 1

@@ -50,7 +50,7 @@ from flightkit.link.base import (
 )
 from flightkit.link.endpoints import Endpoint, parse_endpoint
 from flightkit.link.mavlink.commands import CommandChannel
-from flightkit.link.mavlink.connection import MavlinkConnection
+from flightkit.link.mavlink.connection import LinkIdentity, VehicleChannel
 from flightkit.link.mavlink.encoding import (
     FORCE_DISARM_MAGIC,
     MAV_RESULT_ACCEPTED,
@@ -126,15 +126,10 @@ class MavlinkLink(LinkLifetime):
             target_system = cfg.system_id
         self._target_system = target_system
         self._state = VehicleState(self._clock, cfg.source_system, target_system, self._pin_autopilot)
-        self._conn = MavlinkConnection(
-            self.endpoint,
-            self._clock,
-            cfg.source_system,
-            cfg.source_component,
-            heartbeat_type_for_component(cfg.source_component),
-            signing,
-            self._state,
+        identity = LinkIdentity(
+            cfg.source_system, cfg.source_component, heartbeat_type_for_component(cfg.source_component), signing
         )
+        self._conn = VehicleChannel(self.endpoint, self._clock, identity, self._state, target_system)
         self._send = self._conn.send
         self._loop: asyncio.AbstractEventLoop | None = None
         self._setpoints = SetpointStream(self._clock, cfg.setpoint_timeout_s, self._send_setpoint)
@@ -312,7 +307,9 @@ class MavlinkLink(LinkLifetime):
 
     def _require_target(self) -> tuple[int, int]:
         with self._state.lock:
-            target = self._state.target
+            target, failure = self._state.target, self._state.failure
+        if failure is not None:
+            raise LinkError(failure)
         if target is None or not self._conn.opened or self._closed:
             raise LinkError(
                 f"not connected to an autopilot on {self.endpoint.url}; call connect() (or use 'async with')"

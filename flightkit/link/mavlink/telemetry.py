@@ -25,6 +25,7 @@ from typing import Any, TypeVar
 from scipy.spatial.transform import Rotation
 
 from flightkit.clock import Clock
+from flightkit.errors import LinkError
 from flightkit.frames import (
     ned_to_enu,
     quat_wxyz_to_xyzw,
@@ -100,6 +101,7 @@ class VehicleState:
         self.rx_rejected = 0
         self.rx_other_components = 0
         self.other_systems: set[int] = set()  # autopilots heard that are not the target
+        self.failure: str | None = None  # the link died: every wait and command raises this
 
     def telemetry(self) -> Telemetry:
         """A snapshot of the latest state; returns immediately."""
@@ -221,6 +223,12 @@ class VehicleState:
 
     # ------------------------------------------------------------------ waiting (asyncio side)
 
+    def fail(self, message: str) -> None:
+        """The link died (any thread): every :meth:`wait_until`, now and later, raises LinkError(message)."""
+        with self.lock:
+            self.failure = message
+        self.wake()
+
     def wake(self) -> None:
         """Make every :meth:`wait_until` re-check its probe (any thread)."""
         for wake in list(self._wakers):
@@ -230,7 +238,8 @@ class VehicleState:
         self, probe: Callable[[], T | None], timeout_s: float, on_timeout: Callable[[], BaseException]
     ) -> T:
         """Wait until ``probe()`` returns something other than None (re-checked whenever a
-        message arrives); raise ``on_timeout()`` after ``timeout_s`` of clock time."""
+        message arrives); raise ``on_timeout()`` after ``timeout_s`` of clock time, or
+        LinkError at once when the link has failed."""
         result = probe()
         if result is not None:
             return result
@@ -251,6 +260,8 @@ class VehicleState:
                 result = probe()
                 if result is not None:
                     return result
+                if self.failure is not None:
+                    raise LinkError(self.failure)
                 waiter = asyncio.ensure_future(event.wait())
                 try:
                     await asyncio.wait({waiter, deadline}, return_when=asyncio.FIRST_COMPLETED)
