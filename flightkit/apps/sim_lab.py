@@ -114,6 +114,7 @@ def serve_sim_fleet(
     base_port: int = 14540,
     host: str = "127.0.0.1",
     ready_after_s: float | None = None,
+    shared_link: str | None = None,
     mocap: bool = True,
     camera: bool = True,
     on_event: Callable[[str, SimEvent], None] | None = None,
@@ -121,7 +122,9 @@ def serve_sim_fleet(
 ) -> None:
     """Run a simulated fleet (the lab's ``[[vehicles]]``) until ``stop`` is set; blocks.
 
-    Vehicle ``i`` (in config order) listens on ``udpin:host:base_port + i``; one mocap system
+    Vehicle ``i`` (in config order) listens on ``udpin:host:base_port + i``; with
+    ``shared_link = "udp"`` every vehicle is behind ``udpin:host:base_port`` instead (one port,
+    one system id each), with ``"pty"`` behind one pseudo-terminal radio. One mocap system
     publishes every body under its vehicle's namespace; with ``camera`` each vehicle's camera
     publishes under its namespace too.
 
@@ -130,10 +133,12 @@ def serve_sim_fleet(
     """
     from flightkit.sim.fleet import SimFleet
     from flightkit.sim.publish import SimFleetPublishers
+    from flightkit.sim.router import PTY
 
     n = len(lab_cfg.fleet())
     urls = [f"udpin:{host}:{base_port + i}" for i in range(n)]
-    fleet = SimFleet(lab_cfg, ready_after_s=ready_after_s, urls=urls)
+    shared = {None: None, "udp": f"udpin:{host}:{base_port}", PTY: PTY}[shared_link]
+    fleet = SimFleet(lab_cfg, ready_after_s=ready_after_s, urls=urls, shared_link=shared)
     if on_event is not None:
         for name, lab in fleet.labs.items():
             lab.events.append(_tagged(on_event, name))

@@ -190,6 +190,7 @@ async def sim_fleet_session(
     vehicles: int | None = None,
     speed: float | None = None,
     clock: Clock | None = None,
+    shared_link: str | None = None,
     **fleet_options: Any,
 ) -> AsyncIterator[tuple[SimFleet, Fleet]]:
     """Start a simulated fleet and a :class:`~trajectories.fleet.Fleet` flying it; all closed on exit.
@@ -198,6 +199,8 @@ async def sim_fleet_session(
         lab_cfg: the lab config (its ``[[vehicles]]``, or ``vehicles`` of them in a row).
         vehicles: fly this many vehicles ``uav1`` .. ``uavN`` (default: the config's).
         speed: override ``sim.speed``. clock: the clock (default the fleet's ``SimClock``).
+        shared_link: every autopilot behind one endpoint (``udpin:HOST:PORT`` or ``pty``; see
+            :class:`~flightkit.sim.fleet.SimFleet`).
         fleet_options: passed to :class:`Fleet` (``arm``, ``settings``, ``fleet_safety`` ...).
 
     Yields:
@@ -209,7 +212,7 @@ async def sim_fleet_session(
     cfg = sim_lab_config(lab_cfg, speed=speed)
     if vehicles is not None:
         cfg = fleet_lab_config(cfg, vehicles)
-    sim = SimFleet(cfg, clock=clock, ready_after_s=0.0).start()
+    sim = SimFleet(cfg, clock=clock, ready_after_s=0.0, shared_link=shared_link).start()
     try:
         mocap = SimMocapSource(system=sim.mocap, T_world_mocap=cfg.mocap.T_world_mocap.to_transform())
         async with mocap, Fleet(sim.client_config(), clock=sim.clock, mocap=mocap, **fleet_options) as fleet:

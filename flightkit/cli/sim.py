@@ -53,6 +53,11 @@ def register(subparsers: Any) -> None:
         "--vehicles", type=int, metavar="N",
         help="a fleet of N vehicles uav1..uavN, on ports 14540.. (or the config's [[vehicles]])",
     )
+    p.add_argument(
+        "--shared-link", choices=["udp", "pty"],
+        help="with --vehicles: every vehicle behind one link, each with its own system id: one UDP port "
+        "(the --listen port, default 14540) as a router gives, or one pseudo-terminal as a telemetry radio",
+    )
     p.add_argument("--no-mocap", action="store_true", help="do not publish simulated mocap on the bus")
     p.add_argument(
         "--no-camera", action="store_true", help="do not publish the simulated camera streams on the bus"
@@ -96,6 +101,11 @@ def run(args: argparse.Namespace) -> int:
 
     if args.vehicles is not None or config.vehicles:
         return _run_fleet(args, config)
+    if args.shared_link:
+        from flightkit.errors import ConfigError
+
+        raise ConfigError("<command line>", "--shared-link", "one vehicle has no link to share",
+                          "add --vehicles N (or a config with [[vehicles]])", args.shared_link)
 
     def show(event: SimEvent) -> None:
         if event.kind in ("param",):
@@ -167,7 +177,8 @@ def _run_fleet(args: argparse.Namespace, config: Any) -> int:
         print(f"flightkit sim: a fleet of {len(fleet.labs)}, {fleet.clock!r}")
         for name, lab in fleet.labs.items():
             print(f"  {name}: {lab.personality.vehicle_name}, mocap body {fleet.body_of(name)!r}, "
-                  f"connect with {lab.client_url}")
+                  f"system id {fleet.system_ids[name]}, "
+                  f"connect with {fleet.client_url(name)}")
         if served.keys:
             print(f"  bus: {', '.join(served.keys)}")
         if served.camera_error:
@@ -178,7 +189,8 @@ def _run_fleet(args: argparse.Namespace, config: Any) -> int:
     try:
         serve_sim_fleet(
             config, stop, base_port=base_port, host=host or "127.0.0.1", ready_after_s=args.ready_after,
-            mocap=not args.no_mocap, camera=not args.no_camera, on_event=show, on_ready=ready,
+            shared_link=args.shared_link, mocap=not args.no_mocap, camera=not args.no_camera, on_event=show,
+            on_ready=ready,
         )
     except KeyboardInterrupt:
         print("flightkit sim: stopping")
