@@ -218,6 +218,11 @@ class LinkConfig:
     command_timeout_s: float = setting(3.0, min=0.1, max=60.0, help="how long to wait for COMMAND_ACK")
     setpoint_rate_hz: float = setting(50.0, min=2.0, max=500.0, help="setpoint stream rate")
     setpoint_timeout_s: float = setting(0.5, min=0.05, max=10.0, help="caller silence before an explicit stop")
+    pose_telemetry_hz: float = setting(
+        -1.0, min=-1.0, max=200.0,
+        help="rate asked for the autopilot's own position and attitude; 0 turns them off; -1 (auto): 50 Hz, "
+        "none for a fleet (it flies on mocap)",
+    )
     signing_key_hex: str = setting("", help="MAVLink 2 signing key: 64 hex digits (32 bytes); empty = off")
 
 

@@ -184,7 +184,11 @@ class Fleet:
             self._stack.callback(session.close)
         for vcfg in configs:
             name = vcfg.vehicle.namespace
-            link = await self._stack.enter_async_context(open_link(vcfg.link, vcfg.vehicle.autopilot, self.clock))
+            # the runner flies on mocap: unless asked for, the autopilot's own pose would only load the link
+            link_cfg = vcfg.link
+            if link_cfg.pose_telemetry_hz < 0:
+                link_cfg = dataclasses.replace(link_cfg, pose_telemetry_hz=0.0)
+            link = await self._stack.enter_async_context(open_link(link_cfg, vcfg.vehicle.autopilot, self.clock))
             mocap = self._shared_mocap
             if mocap is None:
                 from flightkit.mocap import open_mocap

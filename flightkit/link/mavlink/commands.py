@@ -27,10 +27,12 @@ logger = logging.getLogger(__name__)
 _REJECT_TEXT_WINDOW_S = 1.0  # STATUSTEXT this long before a command belongs to its refusal
 _REJECT_TEXT_GRACE_S = 0.2  # and texts arriving this long after the refusal
 
-# Telemetry we ask for (SET_MESSAGE_INTERVAL), as (message id, rate Hz).
+# The autopilot's pose estimate: asked for at link.pose_telemetry_hz, or turned off (ATTITUDE too).
+_POSE_STREAMS = (mavlink2.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mavlink2.MAVLINK_MSG_ID_ATTITUDE_QUATERNION)
+_POSE_OFF_STREAMS = (*_POSE_STREAMS, mavlink2.MAVLINK_MSG_ID_ATTITUDE)
+
+# The rest of the telemetry we ask for (SET_MESSAGE_INTERVAL), as (message id, rate Hz).
 _STREAMS: tuple[tuple[int, float], ...] = (
-    (mavlink2.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 50.0),
-    (mavlink2.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, 50.0),
     (mavlink2.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, 5.0),
     (mavlink2.MAVLINK_MSG_ID_SYS_STATUS, 2.0),
     (mavlink2.MAVLINK_MSG_ID_BATTERY_STATUS, 1.0),
@@ -142,8 +144,11 @@ class CommandChannel:
         logger.info("%s refused: %s %s", cmd_name(command), result_name(result), "; ".join(texts))
         return CommandRejected(cmd_name(command), result_name(result), texts, hint)
 
-    async def request_telemetry(self) -> None:
-        """Ask for the telemetry the link decodes and for AUTOPILOT_VERSION; failures are logged only."""
+    async def request_telemetry(self, pose_rate_hz: float) -> None:
+        """Ask for the telemetry the link decodes and for AUTOPILOT_VERSION; failures are logged only.
+
+        ``pose_rate_hz`` is the rate of the autopilot's position and attitude; 0 turns them off.
+        """
 
         async def one(command: int, params: tuple[float, ...]) -> None:
             try:
@@ -155,5 +160,7 @@ class CommandChannel:
                 logger.debug("%s %s refused: %s", cmd_name(command), params, result_name(result))
 
         await one(mavlink2.MAV_CMD_REQUEST_MESSAGE, (float(mavlink2.MAVLINK_MSG_ID_AUTOPILOT_VERSION),))
-        for msg_id, rate in _STREAMS:
-            await one(mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, (float(msg_id), 1e6 / rate))
+        pose = [(m, pose_rate_hz) for m in _POSE_STREAMS] if pose_rate_hz > 0 else [(m, 0.0) for m in _POSE_OFF_STREAMS]
+        for msg_id, rate in (*pose, *_STREAMS):
+            interval_us = 1e6 / rate if rate > 0 else -1.0  # -1: stop sending it
+            await one(mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, (float(msg_id), interval_us))

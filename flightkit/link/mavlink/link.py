@@ -71,6 +71,7 @@ __all__ = ["LinkStats", "MavlinkLink"]
 logger = logging.getLogger(__name__)
 
 _PX4_OFFBOARD_WARMUP_S = 1.25  # PX4 wants a second of setpoints before OFFBOARD (plus margin)
+_AUTO_POSE_TELEMETRY_HZ = 50.0  # the autopilot's position and attitude with link.pose_telemetry_hz = -1
 
 
 @dataclass(frozen=True, slots=True)
@@ -227,7 +228,8 @@ class MavlinkLink(LinkLifetime):
             info.system_id,
             self.endpoint.url,
         )
-        self._spawn(self._commands.request_telemetry())
+        pose_hz = self._cfg.pose_telemetry_hz
+        self._spawn(self._commands.request_telemetry(_AUTO_POSE_TELEMETRY_HZ if pose_hz < 0 else pose_hz))
         return info
 
     def _no_heartbeat_error(self, timeout_s: float) -> LinkTimeout:
