@@ -454,7 +454,11 @@ class FlightRunner:
         await self.goto(first.pos_m, first.yaw_rad)
         self._last_yaw = first.yaw_rad
         if start_at_s is not None:
-            await self.hold_until(lambda: self.clock.monotonic_s() >= start_at_s, phase="sync")
+            # hold until a cycle before the epoch, then wake at the epoch itself: every vehicle's first
+            # pattern cycle runs then, not at its next mocap sample after it (up to a period late)
+            lead_s = 1.0 / self.loop.rate_hz
+            await self.hold_until(lambda: self.clock.monotonic_s() >= start_at_s - lead_s, phase="sync")
+            await self.clock.sleep(max(0.0, start_at_s - self.clock.monotonic_s()))
         await self.reactor.run(lambda: self.loop.track(pattern, "pattern", epoch_s=start_at_s))
         self.pattern_started_s = self.loop.phase_started_s
         self._remember(pattern)
