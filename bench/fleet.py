@@ -15,11 +15,23 @@ Reported per fleet size:
 - the pattern start skew (spread of the vehicles' first pattern cycle, clock time);
 - pattern RMS tracking error, worst vehicle and median.
 
+Each size flies in every link set-up asked for (``--setups``), in the same run:
+
+- ``ports``: one UDP port per vehicle and the autopilot's own pose streamed at 50 Hz (as before
+  issue 16's shared link: one connection and reader thread per vehicle);
+- ``ports-nopose``: the same without the pose streams (``link.pose_telemetry_hz = 0``; the runner
+  flies on mocap and reads only heartbeat, landed state and battery);
+- ``shared``: every vehicle behind one UDP port (``flightkit sim --shared-link udp``), one
+  connection and one reader thread for the fleet, no pose streams.
+
+``--threads`` prints where this process's CPU went, by thread (the main thread runs asyncio: the
+control loops and the mocap delivery), for the largest size of each set-up.
+
 Goals (issue 16): 10 vehicles at 100 Hz within one core with every vehicle's cycle p99 under
 2 ms of CPU; start skew under 20 ms; every vehicle's pattern RMS under 2 cm on the circle.
 
-    .venv/bin/python bench/fleet.py                  # 1, 3, 5, 10 vehicles, 30 s lap (~5 min)
-    .venv/bin/python bench/fleet.py --sizes 1 3 --period 20
+    .venv/bin/python bench/fleet.py                  # 1, 3, 5, 10 vehicles, 30 s lap, 3 set-ups
+    .venv/bin/python bench/fleet.py --sizes 10 --period 15 --threads
 """
 
 from __future__ import annotations
@@ -34,6 +46,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -69,40 +82,88 @@ def free_port(kind: int) -> int:
         return int(sock.getsockname()[1])
 
 
-def lab_files(fplan: FleetPlan, folder: Path) -> tuple[Path, Path, int]:
+SETUPS = {"ports": (False, 50.0), "ports-nopose": (False, -1.0), "shared": (True, -1.0)}
+"""set-up -> (every vehicle behind one port, link.pose_telemetry_hz; -1: auto, none for a fleet)."""
+
+
+def lab_files(fplan: FleetPlan, folder: Path, shared: bool, pose_hz: float) -> tuple[Path, Path, int]:
     """The simulator's lab config and ours: the same vehicles, standing under their start points,
-    the simulator listening (MAVLink ports base.., bus), us connecting."""
+    the simulator listening (MAVLink ports base.. or the one shared port, bus), us connecting."""
     base = free_port(socket.SOCK_DGRAM)
     while base + len(fplan.vehicles) > 65000:
         base = free_port(socket.SOCK_DGRAM)
     bus = free_port(socket.SOCK_STREAM)
     sim_lines = [f'[bus]\nlisten = ["tcp/127.0.0.1:{bus}"]\n']
-    our_lines = [f'[bus]\nconnect = ["tcp/127.0.0.1:{bus}"]\n']
+    our_lines = [f'[bus]\nconnect = ["tcp/127.0.0.1:{bus}"]\n[link]\npose_telemetry_hz = {pose_hz}\n']
     for i, (name, pattern) in enumerate(fplan.build_patterns().items()):
         x, y, _ = pattern.reference(0.0).pos_m
-        sim_lines.append(f'[[vehicles]]\nname = "{name}"\nstart_m = [{x:.4f}, {y:.4f}, 0.0]\n')
-        our_lines.append(f'[[vehicles]]\nname = "{name}"\nurl = "udpout:127.0.0.1:{base + i}"\n')
+        port = base if shared else base + i
+        sim_lines.append(f'[[vehicles]]\nname = "{name}"\nsystem_id = {i + 1}\nstart_m = [{x:.4f}, {y:.4f}, 0.0]\n')
+        our_lines.append(f'[[vehicles]]\nname = "{name}"\nsystem_id = {i + 1}\nurl = "udpout:127.0.0.1:{port}"\n')
     sim_cfg, our_cfg = folder / "sim.toml", folder / "ours.toml"
     sim_cfg.write_text("[camera]\nenabled = false\n" + "\n".join(sim_lines))
     our_cfg.write_text("\n".join(our_lines))
     return sim_cfg, our_cfg, base
 
 
-def run(n: int, period_s: float, rate_hz: float) -> tuple[FleetResult, float, float]:
+def _short_name(name: str) -> str:
+    """``mavlink-reader udpout:...`` -> ``mavlink-reader``; ``Thread-3 (run)`` -> ``Thread (run)``."""
+    head, _, rest = name.partition(" ")
+    head = head.rstrip("-_0123456789")
+    return f"{head} {rest}" if rest.startswith("(") else head
+
+
+def tasks_cpu_s() -> dict[int, tuple[str, float]]:
+    """Every thread of this process (Python and native, e.g. Zenoh's): id -> (name, CPU seconds so far).
+    Python threads go by their name without numbers, native ones by their OS name."""
+    names = {t.native_id: _short_name(t.name) for t in threading.enumerate()}
+    tick = os.sysconf("SC_CLK_TCK")
+    out = {}
+    for entry in os.scandir("/proc/self/task"):
+        try:
+            with open(f"{entry.path}/stat") as f:
+                comm, rest = f.read().split(" (", 1)[1].rsplit(")", 1)
+        except OSError:
+            continue
+        fields = rest.split()
+        tid = int(entry.name)
+        out[tid] = (names.get(tid, comm.rstrip("-0123456789")), (int(fields[11]) + int(fields[12])) / tick)
+    return out
+
+
+def run(n: int, period_s: float, rate_hz: float, setup: str) -> tuple[FleetResult, float, float, dict[str, float]]:
+    shared, pose_hz = SETUPS[setup]
     fplan = parse_fleet_plan(circle_plan(n, period_s, rate_hz), f"<bench fleet {n}>")
     with tempfile.TemporaryDirectory(prefix="bench-fleet-") as tmp:
-        sim_cfg, our_cfg, base = lab_files(fplan, Path(tmp))
+        sim_cfg, our_cfg, base = lab_files(fplan, Path(tmp), shared, pose_hz)
         sim = subprocess.Popen(
             [str(Path(sys.executable).parent / "flightkit"), "sim", "--config", str(sim_cfg), "--ready-after", "0",
-             "--no-camera", "--listen", f"udpin:127.0.0.1:{base}"],
+             "--no-camera", "--listen", f"udpin:127.0.0.1:{base}", *(["--shared-link", "udp"] if shared else [])],
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env={**os.environ, "OPENBLAS_NUM_THREADS": "1"},
         )
         try:
             time.sleep(3.0)  # the simulator binds its ports and opens the bus
             lab = load_config(our_cfg)
+            stop = threading.Event()
+            seen: dict[int, tuple[str, float]] = {}
+
+            def sample() -> None:  # threads end with the flight: keep each one's last reading
+                while not stop.wait(0.25):
+                    seen.update(tasks_cpu_s())
+
+            start = tasks_cpu_s()
+            sampler = threading.Thread(target=sample, name="bench-sampler", daemon=True)
+            sampler.start()
             c0, w0 = cpu_s(), time.monotonic()
             result = asyncio.run(fly_fleet_plan(fplan, lab, arm=True))
-            return result, cpu_s() - c0, time.monotonic() - w0
+            cpu, wall = cpu_s() - c0, time.monotonic() - w0
+            seen.update(tasks_cpu_s())
+            stop.set()
+            sampler.join()
+            threads: dict[str, float] = {}
+            for tid, (name, secs) in seen.items():
+                threads[name] = threads.get(name, 0.0) + secs - start.get(tid, (name, 0.0))[1]
+            return result, cpu, wall, threads
         finally:
             sim.terminate()
             sim.wait(10)
@@ -113,31 +174,40 @@ def main() -> int:
     ap.add_argument("--sizes", type=int, nargs="+", default=[1, 3, 5, 10], help="fleet sizes to fly")
     ap.add_argument("--period", type=float, default=30.0, help="seconds per lap of the circle")
     ap.add_argument("--rate", type=float, default=100.0, help="control rate per vehicle, Hz")
+    ap.add_argument("--setups", nargs="+", choices=list(SETUPS), default=list(SETUPS), help="link set-ups to fly")
+    ap.add_argument("--threads", action="store_true", help="CPU by thread for the largest size of each set-up")
     args = ap.parse_args()
     print(f"fleet benchmark: one circle, {args.period:g} s lap, {args.rate:g} Hz per vehicle, real time; "
           "the simulated lab in its own process")
-    head = (f"{'vehicles':>8} {'outcome':>10} {'cpu p50 ms':>10} {'cpu p99 ms':>10} {'worst p99':>10} "
+    head = (f"{'setup':>12} {'vehicles':>8} {'outcome':>10} {'cpu p50 ms':>10} {'cpu p99 ms':>10} {'worst p99':>10} "
             f"{'wall p99 ms':>11} {'loop Hz':>8} {'cores':>6} {'skew ms':>8} {'RMS med mm':>10} "
             f"{'RMS max mm':>10} {'min sep m':>9}")
     print(head)
-    rows = []
+    breakdowns = {}
     for n in args.sizes:
-        result, cpu, wall = run(n, args.period, args.rate)
-        s = list(result.summaries.values())
-        p50 = statistics.median(x.cycle_cpu_p50_ms for x in s)
-        p99 = statistics.median(x.cycle_cpu_p99_ms for x in s)
-        worst = max(x.cycle_cpu_p99_ms for x in s)
-        wall99 = max(x.cycle_p99_ms for x in s)
-        rate = statistics.median(x.loop_rate_hz for x in s)
-        rms = [x.phase("pattern").rms_error_m * 1e3 for x in s if any(p.name == "pattern" for p in x.phases)]
-        cores = cpu / wall if wall > 0 else math.nan
-        skew = result.start_skew_s * 1e3
-        row = (f"{n:>8} {result.outcome[:10]:>10} {p50:>10.3f} {p99:>10.3f} {worst:>10.3f} {wall99:>11.3f} "
-               f"{rate:>8.0f} {cores:>6.2f} {skew:>8.1f} {statistics.median(rms) if rms else math.nan:>10.1f} "
-               f"{max(rms) if rms else math.nan:>10.1f} {result.min_separation_m:>9.2f}")
-        rows.append(row)
-        print(row, flush=True)
+        for setup in args.setups:
+            result, cpu, wall, threads = run(n, args.period, args.rate, setup)
+            if n == max(args.sizes):
+                breakdowns[setup] = (threads, wall)
+            s = list(result.summaries.values())
+            p50 = statistics.median(x.cycle_cpu_p50_ms for x in s)
+            p99 = statistics.median(x.cycle_cpu_p99_ms for x in s)
+            worst = max(x.cycle_cpu_p99_ms for x in s)
+            wall99 = max(x.cycle_p99_ms for x in s)
+            rate = statistics.median(x.loop_rate_hz for x in s)
+            rms = [x.phase("pattern").rms_error_m * 1e3 for x in s if any(p.name == "pattern" for p in x.phases)]
+            cores = cpu / wall if wall > 0 else math.nan
+            skew = result.start_skew_s * 1e3
+            print(f"{setup:>12} {n:>8} {result.outcome[:10]:>10} {p50:>10.3f} {p99:>10.3f} {worst:>10.3f} "
+                  f"{wall99:>11.3f} {rate:>8.0f} {cores:>6.2f} {skew:>8.1f} "
+                  f"{statistics.median(rms) if rms else math.nan:>10.1f} {max(rms) if rms else math.nan:>10.1f} "
+                  f"{result.min_separation_m:>9.2f}", flush=True)
     print("goals: 10 vehicles within one core (cores <= 1.0), every p99 < 2 ms CPU, skew < 20 ms, RMS < 20 mm")
+    if args.threads:
+        for setup, (threads, wall) in breakdowns.items():
+            ranked = sorted(threads.items(), key=lambda kv: -kv[1])[:8]
+            top = ", ".join(f"{name} {secs / wall:.2f}" for name, secs in ranked if secs > 0)
+            print(f"cores by thread, {setup}, {max(args.sizes)} vehicles: {top}")
     return 0
 
 
