@@ -85,3 +85,29 @@ def test_malformed_strings_say_what_to_write(url: str, says: str) -> None:
     assert says in message
     assert message.count("\n") == 0
     assert any(w in message for w in ("write", "use", "give")), message  # always says what to do
+
+
+def test_a_udp_read_takes_the_queued_datagrams_of_one_sender() -> None:
+    """One recv() returns every datagram already queued from one sender (one parse, one wake for a
+    burst of telemetry); another sender's datagram waits for the next call, so replies still go
+    to whoever sent."""
+    import socket
+
+    from flightkit.link.endpoints import open_transport
+
+    transport = open_transport(parse_endpoint("udpin:127.0.0.1:0"))
+    a, b = socket.socket(socket.AF_INET, socket.SOCK_DGRAM), socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        to = ("127.0.0.1", transport.local_port)
+        for data in (b"a1", b"a2", b"a3"):
+            a.sendto(data, to)
+        b.sendto(b"b1", to)
+        a.sendto(b"a4", to)
+        assert transport.recv(1.0) == b"a1a2a3" and transport.last_sender == ("127.0.0.1", a.getsockname()[1])
+        assert transport.recv(1.0) == b"b1" and transport.last_sender == ("127.0.0.1", b.getsockname()[1])
+        assert transport.recv(1.0) == b"a4"
+        assert transport.recv(0.01) == b""
+    finally:
+        a.close()
+        b.close()
+        transport.close()
