@@ -7,6 +7,7 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import math
+import os
 import threading
 from pathlib import Path
 
@@ -125,3 +126,44 @@ def test_vehicles_sharing_a_link_need_system_ids_and_pymavlink() -> None:
     anonymous = dataclasses.replace(shared, vehicles=(v1, dataclasses.replace(v2, system_id=0)))
     with pytest.raises(ConfigError, match=r"vehicles\[1\].system_id: uav2 shares /dev/ttyUSB0:57600"):
         anonymous.check_shared_links()
+
+
+def test_flightkit_sim_serves_a_fleet_on_one_radio() -> None:
+    """``flightkit sim --vehicles 2 --shared-link pty`` in its own process: both vehicles answer on
+    the one device it prints, each with its own system id."""
+    import re
+    import signal
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "flightkit", "sim", "--vehicles", "2", "--shared-link", "pty", "--ready-after", "0",
+         "--no-mocap", "--no-camera"],
+        stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+    try:
+        assert proc.stdout is not None
+        urls = []
+        for line in proc.stdout:
+            m = re.search(r"uav\d: .* system id (\d), connect with (\S+)", line)
+            if m:
+                urls.append((int(m.group(1)), m.group(2)))
+            if "Ctrl-C" in line:
+                break
+        assert [i for i, _ in urls] == [1, 2] and len({u for _, u in urls}) == 1 and urls[0][1].startswith("serial:")
+
+        async def go() -> tuple[int, int]:
+            links = [MavlinkLink(LinkConfig(url=u, system_id=i, heartbeat_timeout_s=5.0), Autopilot.PX4)
+                     for i, u in urls]
+            async with links[0], links[1]:
+                return links[0].info.system_id, links[1].info.system_id
+
+        assert asyncio.run(go()) == (1, 2)
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=20) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        if proc.stdout is not None:
+            proc.stdout.close()
