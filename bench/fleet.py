@@ -25,7 +25,9 @@ Each size flies in every link set-up asked for (``--setups``), in the same run:
   connection and one reader thread for the fleet, no pose streams.
 
 ``--threads`` prints where this process's CPU went, by thread (the main thread runs asyncio: the
-control loops and the mocap delivery), for the largest size of each set-up.
+control loops and the mocap delivery), for the largest size of each set-up. ``--profile N``
+runs the main thread of those flights under cProfile and prints its N costliest functions (own
+time; cProfile slows what it watches, so the figures of those rows are not comparable).
 
 Goals (issue 16): 10 vehicles at 100 Hz within one core with every vehicle's cycle p99 under
 2 ms of CPU; start skew under 20 ms; every vehicle's pattern RMS under 2 cm on the circle.
@@ -38,8 +40,11 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import cProfile
+import io
 import math
 import os
+import pstats
 import resource
 import socket
 import statistics
@@ -131,7 +136,9 @@ def tasks_cpu_s() -> dict[int, tuple[str, float]]:
     return out
 
 
-def run(n: int, period_s: float, rate_hz: float, setup: str) -> tuple[FleetResult, float, float, dict[str, float]]:
+def run(
+    n: int, period_s: float, rate_hz: float, setup: str, profile: cProfile.Profile | None = None
+) -> tuple[FleetResult, float, float, dict[str, float]]:
     shared, pose_hz = SETUPS[setup]
     fplan = parse_fleet_plan(circle_plan(n, period_s, rate_hz), f"<bench fleet {n}>")
     with tempfile.TemporaryDirectory(prefix="bench-fleet-") as tmp:
@@ -155,7 +162,13 @@ def run(n: int, period_s: float, rate_hz: float, setup: str) -> tuple[FleetResul
             sampler = threading.Thread(target=sample, name="bench-sampler", daemon=True)
             sampler.start()
             c0, w0 = cpu_s(), time.monotonic()
-            result = asyncio.run(fly_fleet_plan(fplan, lab, arm=True))
+            if profile is not None:
+                profile.enable()
+            try:
+                result = asyncio.run(fly_fleet_plan(fplan, lab, arm=True))
+            finally:
+                if profile is not None:
+                    profile.disable()
             cpu, wall = cpu_s() - c0, time.monotonic() - w0
             seen.update(tasks_cpu_s())
             stop.set()
@@ -176,6 +189,8 @@ def main() -> int:
     ap.add_argument("--rate", type=float, default=100.0, help="control rate per vehicle, Hz")
     ap.add_argument("--setups", nargs="+", choices=list(SETUPS), default=list(SETUPS), help="link set-ups to fly")
     ap.add_argument("--threads", action="store_true", help="CPU by thread for the largest size of each set-up")
+    ap.add_argument("--profile", type=int, default=0, metavar="N",
+                    help="cProfile the main thread of the largest size's flights; print the N costliest functions")
     args = ap.parse_args()
     print(f"fleet benchmark: one circle, {args.period:g} s lap, {args.rate:g} Hz per vehicle, real time; "
           "the simulated lab in its own process")
@@ -184,11 +199,18 @@ def main() -> int:
             f"{'RMS max mm':>10} {'min sep m':>9}")
     print(head)
     breakdowns = {}
+    profiles: dict[str, str] = {}
     for n in args.sizes:
         for setup in args.setups:
-            result, cpu, wall, threads = run(n, args.period, args.rate, setup)
-            if n == max(args.sizes):
+            largest = n == max(args.sizes)
+            profile = cProfile.Profile() if args.profile and largest else None
+            result, cpu, wall, threads = run(n, args.period, args.rate, setup, profile)
+            if largest:
                 breakdowns[setup] = (threads, wall)
+            if profile is not None:
+                out = io.StringIO()
+                pstats.Stats(profile, stream=out).sort_stats("tottime").print_stats(args.profile)
+                profiles[setup] = out.getvalue()
             s = list(result.summaries.values())
             p50 = statistics.median(x.cycle_cpu_p50_ms for x in s)
             p99 = statistics.median(x.cycle_cpu_p99_ms for x in s)
@@ -208,6 +230,9 @@ def main() -> int:
             ranked = sorted(threads.items(), key=lambda kv: -kv[1])[:8]
             top = ", ".join(f"{name} {secs / wall:.2f}" for name, secs in ranked if secs > 0)
             print(f"cores by thread, {setup}, {max(args.sizes)} vehicles: {top}")
+    for setup, text in profiles.items():
+        print(f"main thread under cProfile, {setup}, {max(args.sizes)} vehicles:")
+        print("\n".join(line for line in text.splitlines() if line.strip())[:4000])
     return 0
 
 

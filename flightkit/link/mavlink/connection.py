@@ -4,8 +4,10 @@ Several vehicles can sit behind one endpoint: a telemetry radio on a serial port
 (mavlink-router, MAVProxy, the simulator's ``--shared-link``) forwarding several system ids
 to one UDP port. The process opens each endpoint once: :class:`MavlinkConnection` owns the
 transport (:mod:`flightkit.link.endpoints`), pymavlink's MAVLink 2 codec (ArduPilot dialect, a
-superset of common) for each direction, signing when a key is configured, and the **reader
-thread**. The reader parses every packet once and hands it to the
+superset of common) for each direction, signing when a key is configured, the **writer thread**
+(senders only queue packets: the control loop never waits in a system call, nor for the GIL
+after one; what queued meanwhile leaves together) and the **reader thread**. The reader parses
+every packet once and hands it to the
 :class:`~flightkit.link.mavlink.telemetry.VehicleState` of the vehicle whose system id sent it
 (heartbeats of autopilots nobody claimed go to every vehicle, so a vehicle that waits for
 another id can name what answered), wakes that vehicle's waiters, and sends our HEARTBEAT at
@@ -21,6 +23,7 @@ the same message. A listening endpoint on port 0 is never shared (each asks for 
 from __future__ import annotations
 
 import asyncio
+import collections
 import concurrent.futures
 import logging
 import threading
@@ -41,6 +44,7 @@ __all__ = ["LinkIdentity", "MavlinkConnection", "VehicleChannel"]
 logger = logging.getLogger(__name__)
 
 _READER_POLL_S = 0.01  # wall seconds per transport poll (bounds heartbeat jitter and close latency)
+_WRITE_MAX_BYTES = 1200  # packets sent together stay in one unfragmented datagram
 
 
 @dataclass(frozen=True, slots=True)
@@ -59,14 +63,34 @@ class LinkIdentity:
     signing: SigningSettings | None
 
 
-class _TransportWriter:
-    """The file-like object pymavlink's MAVLink.send writes to."""
+class _Outbox:
+    """The file-like object pymavlink's MAVLink.send writes to: packets queue here and the writer
+    thread puts them on the wire, so a sender (the control loop's thread) never waits in a system
+    call, nor for the GIL after one."""
 
-    def __init__(self, transport: Transport) -> None:
-        self.transport = transport
+    def __init__(self) -> None:
+        self.packets: collections.deque[bytes] = collections.deque()
+        self.ready = threading.Event()
 
     def write(self, data: bytes | bytearray) -> None:
-        self.transport.send(bytes(data))
+        self.packets.append(bytes(data))
+        self.ready.set()
+
+    def take(self) -> list[bytes]:
+        """Everything queued, in order, as writes of at most _WRITE_MAX_BYTES (several packets each)."""
+        writes: list[bytes] = []
+        chunk: list[bytes] = []
+        size = 0
+        while self.packets:
+            packet = self.packets.popleft()
+            if chunk and size + len(packet) > _WRITE_MAX_BYTES:
+                writes.append(b"".join(chunk))
+                chunk, size = [], 0
+            chunk.append(packet)
+            size += len(packet)
+        if chunk:
+            writes.append(b"".join(chunk))
+        return writes
 
 
 class MavlinkConnection:
@@ -89,7 +113,9 @@ class MavlinkConnection:
         self._rx: Any = None  # pymavlink MAVLink used for parsing (reader thread only)
         self._tx_lock = threading.Lock()
         self._reader: threading.Thread | None = None
+        self._writer: threading.Thread | None = None
         self._stop_reader = threading.Event()
+        self._outbox = _Outbox()
         self._opening: concurrent.futures.Future[None] | None = None
         self._routes_lock = threading.Lock()
         self._by_system: dict[int, VehicleState] = {}
@@ -171,7 +197,7 @@ class MavlinkConnection:
         self._transport = transport
         self.local_port = transport.local_port
         ident = self.identity
-        self._tx = mavlink2.MAVLink(_TransportWriter(transport), ident.source_system, ident.source_component)
+        self._tx = mavlink2.MAVLink(self._outbox, ident.source_system, ident.source_component)
         self._rx = mavlink2.MAVLink(None, ident.source_system, ident.source_component)
         self._rx.robust_parsing = True
         if ident.signing is not None:
@@ -183,14 +209,22 @@ class MavlinkConnection:
             target=self._read_loop, name=f"mavlink-reader {self.endpoint.url}", daemon=True
         )
         self._reader.start()
+        self._writer = threading.Thread(
+            target=self._write_loop, name=f"mavlink-writer {self.endpoint.url}", daemon=True
+        )
+        self._writer.start()
         logger.debug("listening on %s (local port %d)", self.endpoint.url, self.local_port)
 
     async def close(self) -> None:
-        """Stop the reader thread and close the endpoint; returns when both are done."""
+        """Stop the reader, send what is queued, stop the writer and close the endpoint; returns
+        when all are done."""
         self._stop_reader.set()
-        if self._reader is not None:
-            await asyncio.to_thread(self._reader.join, 2.0)
-            self._reader = None
+        self._outbox.ready.set()
+        for attr in ("_reader", "_writer"):
+            thread = getattr(self, attr)
+            if thread is not None:
+                await asyncio.to_thread(thread.join, 2.0)
+                setattr(self, attr, None)
         with self._tx_lock:
             self._tx = None
             if self._transport is not None:
@@ -242,6 +276,18 @@ class MavlinkConnection:
             if now >= next_hb_s:
                 self._send_heartbeat()
                 next_hb_s = max(next_hb_s + 1.0, now + 0.5)
+
+    def _write_loop(self) -> None:
+        transport = self._transport
+        assert transport is not None
+        outbox = self._outbox
+        while True:
+            outbox.ready.wait()
+            outbox.ready.clear()
+            for data in outbox.take():
+                transport.send(data)
+            if self._stop_reader.is_set() and not outbox.packets:
+                return
 
     def _route(self, msgs: list[Any]) -> None:
         now = self._clock.monotonic_s()
