@@ -220,7 +220,7 @@ class LinkConfig:
     setpoint_timeout_s: float = setting(0.5, min=0.05, max=10.0, help="caller silence before an explicit stop")
     pose_telemetry_hz: float = setting(
         -1.0, min=-1.0, max=200.0,
-        help="rate asked for the autopilot's own position and attitude; 0 turns them off; -1 (auto): 50 Hz, "
+        help="rate the pymavlink link asks for the autopilot's own position and attitude; 0: off; -1 (auto): 50 Hz, "
         "none for a fleet (it flies on mocap)",
     )
     signing_key_hex: str = setting("", help="MAVLink 2 signing key: 64 hex digits (32 bytes); empty = off")

@@ -5,8 +5,9 @@ Several vehicles can sit behind one endpoint: a telemetry radio on a serial port
 to one UDP port. The process opens each endpoint once: :class:`MavlinkConnection` owns the
 transport (:mod:`flightkit.link.endpoints`), pymavlink's MAVLink 2 codec (ArduPilot dialect, a
 superset of common) for each direction, signing when a key is configured, the **writer thread**
-(senders only queue packets: the control loop never waits in a system call, nor for the GIL
-after one; what queued meanwhile leaves together) and the **reader thread**. The reader parses
+(senders only queue messages; it packs them, with sequence numbers and signatures, and sends
+what queued together: the control loop never waits for a lock, in a system call, or for the
+GIL after one) and the **reader thread**. The reader parses
 every packet once and hands it to the
 :class:`~flightkit.link.mavlink.telemetry.VehicleState` of the vehicle whose system id sent it
 (heartbeats of autopilots nobody claimed go to every vehicle, so a vehicle that waits for
@@ -64,25 +65,34 @@ class LinkIdentity:
 
 
 class _Outbox:
-    """The file-like object pymavlink's MAVLink.send writes to: packets queue here and the writer
-    thread puts them on the wire, so a sender (the control loop's thread) never waits in a system
-    call, nor for the GIL after one."""
+    """Messages waiting for the writer thread. Senders (the control loop's thread, setpoint streams)
+    only append here: packing, sequence numbers, signing and the system call are the writer's, so a
+    sender never waits for a lock held by a thread that lost the GIL, nor for the GIL after sendto."""
 
     def __init__(self) -> None:
-        self.packets: collections.deque[bytes] = collections.deque()
+        self.msgs: collections.deque[Any] = collections.deque()
         self.ready = threading.Event()
+
+    def put(self, msg: Any) -> None:
+        self.msgs.append(msg)
+        self.ready.set()
+
+
+class _Packets:
+    """The file-like object pymavlink's MAVLink.send writes to (writer thread only)."""
+
+    def __init__(self) -> None:
+        self.packets: list[bytes] = []
 
     def write(self, data: bytes | bytearray) -> None:
         self.packets.append(bytes(data))
-        self.ready.set()
 
     def take(self) -> list[bytes]:
-        """Everything queued, in order, as writes of at most _WRITE_MAX_BYTES (several packets each)."""
+        """Everything packed, in order, as writes of at most _WRITE_MAX_BYTES (several packets each)."""
         writes: list[bytes] = []
         chunk: list[bytes] = []
         size = 0
-        while self.packets:
-            packet = self.packets.popleft()
+        for packet in self.packets:
             if chunk and size + len(packet) > _WRITE_MAX_BYTES:
                 writes.append(b"".join(chunk))
                 chunk, size = [], 0
@@ -90,6 +100,7 @@ class _Outbox:
             size += len(packet)
         if chunk:
             writes.append(b"".join(chunk))
+        self.packets = []
         return writes
 
 
@@ -109,13 +120,14 @@ class MavlinkConnection:
         self.identity = identity
         self._clock = clock
         self._transport: Transport | None = None
-        self._tx: Any = None  # pymavlink MAVLink used for sending (under _tx_lock)
+        self._tx: Any = None  # pymavlink MAVLink used for sending (writer thread only)
         self._rx: Any = None  # pymavlink MAVLink used for parsing (reader thread only)
-        self._tx_lock = threading.Lock()
+        self._sending = False  # True from open until close or failure
         self._reader: threading.Thread | None = None
         self._writer: threading.Thread | None = None
         self._stop_reader = threading.Event()
         self._outbox = _Outbox()
+        self._packets = _Packets()
         self._opening: concurrent.futures.Future[None] | None = None
         self._routes_lock = threading.Lock()
         self._by_system: dict[int, VehicleState] = {}
@@ -197,7 +209,7 @@ class MavlinkConnection:
         self._transport = transport
         self.local_port = transport.local_port
         ident = self.identity
-        self._tx = mavlink2.MAVLink(self._outbox, ident.source_system, ident.source_component)
+        self._tx = mavlink2.MAVLink(self._packets, ident.source_system, ident.source_component)
         self._rx = mavlink2.MAVLink(None, ident.source_system, ident.source_component)
         self._rx.robust_parsing = True
         if ident.signing is not None:
@@ -205,6 +217,7 @@ class MavlinkConnection:
             apply_signing(self._tx, ident.signing, now_ns)
             apply_signing(self._rx, ident.signing, now_ns)
         self._stop_reader.clear()
+        self._sending = True
         self._reader = threading.Thread(
             target=self._read_loop, name=f"mavlink-reader {self.endpoint.url}", daemon=True
         )
@@ -225,10 +238,9 @@ class MavlinkConnection:
             if thread is not None:
                 await asyncio.to_thread(thread.join, 2.0)
                 setattr(self, attr, None)
-        with self._tx_lock:
-            self._tx = None
-            if self._transport is not None:
-                self._transport.close()
+        self._sending = False
+        if self._transport is not None:
+            self._transport.close()
 
     def pin_last_sender(self) -> None:
         """Reply only to the address the last packet came from (the autopilot's, or its router's)."""
@@ -238,19 +250,11 @@ class MavlinkConnection:
             transport.pin_peer(sender)
 
     def send(self, msg: Any) -> bool:
-        """Send one message (any thread); False (dropped) once closed or dead."""
-        with self._tx_lock:
-            if self._tx is None:
-                return False
-            signing = self.identity.signing
-            if signing is not None:
-                # pymavlink counts the timestamp up by one per packet; keep it at least at "now"
-                # so an autopilot that restarts still accepts us as a fresh stream.
-                self._tx.signing.timestamp = max(
-                    self._tx.signing.timestamp, signing_timestamp(self._clock.time_ns())
-                )
-            self._tx.send(msg)
-            return True
+        """Queue one message for the writer thread (any thread); False (dropped) once closed or dead."""
+        if not self._sending:
+            return False
+        self._outbox.put(msg)
+        return True
 
     # ------------------------------------------------------------------ reader thread
 
@@ -280,13 +284,19 @@ class MavlinkConnection:
     def _write_loop(self) -> None:
         transport = self._transport
         assert transport is not None
-        outbox = self._outbox
+        outbox, tx, signing = self._outbox, self._tx, self.identity.signing
         while True:
             outbox.ready.wait()
             outbox.ready.clear()
-            for data in outbox.take():
+            while outbox.msgs:
+                if signing is not None:
+                    # pymavlink counts the timestamp up by one per packet; keep it at least at "now"
+                    # so an autopilot that restarts still accepts us as a fresh stream.
+                    tx.signing.timestamp = max(tx.signing.timestamp, signing_timestamp(self._clock.time_ns()))
+                tx.send(outbox.msgs.popleft())
+            for data in self._packets.take():
                 transport.send(data)
-            if self._stop_reader.is_set() and not outbox.packets:
+            if self._stop_reader.is_set() and not outbox.msgs:
                 return
 
     def _route(self, msgs: list[Any]) -> None:
@@ -319,8 +329,7 @@ class MavlinkConnection:
             "check the radio or cable, then reconnect"
         )
         logger.error("%s", self.failure)
-        with self._tx_lock:
-            self._tx = None
+        self._sending = False
         for state in states:
             state.fail(self.failure)
 
