@@ -95,7 +95,7 @@ def test_two_vehicles_on_one_serial_radio_over_a_pty() -> None:
             assert uav2.telemetry.armed and not uav1.telemetry.armed
             await uav2.disarm()
             # a vehicle configured as system 3 while the radio carries 1 and 2: the unclaimed id is named
-            wrong = link(3, heartbeat_timeout_s=1.0)
+            wrong = link(3, heartbeat_timeout_s=3.0)
             await uav1.close()
             assert len(readers()) == 1  # uav2 still holds the radio open
             with pytest.raises(LinkTimeout, match="no HEARTBEAT from system 3 .* system id 1 answered"):
