@@ -5,9 +5,10 @@ Several vehicles can sit behind one endpoint: a telemetry radio on a serial port
 to one UDP port. The process opens each endpoint once: :class:`MavlinkConnection` owns the
 transport (:mod:`flightkit.link.endpoints`), pymavlink's MAVLink 2 codec (ArduPilot dialect, a
 superset of common) for each direction, signing when a key is configured, the **writer thread**
-(senders only queue messages; it packs them, with sequence numbers and signatures, and sends
-what queued together: the control loop never waits for a lock, in a system call, or for the
-GIL after one) and the **reader thread**. The reader parses
+(once several vehicles share the link, senders only queue messages; it packs them, with
+sequence numbers and signatures, and sends what queued together, so no control loop waits for a
+lock shared by the fleet's senders, in a system call, or for the GIL after one; a vehicle alone
+on its link sends from the caller's thread) and the **reader thread**. The reader parses
 every packet once and hands it to the
 :class:`~flightkit.link.mavlink.telemetry.VehicleState` of the vehicle whose system id sent it
 (heartbeats of autopilots nobody claimed go to every vehicle, so a vehicle that waits for
@@ -65,9 +66,10 @@ class LinkIdentity:
 
 
 class _Outbox:
-    """Messages waiting for the writer thread. Senders (the control loop's thread, setpoint streams)
-    only append here: packing, sequence numbers, signing and the system call are the writer's, so a
-    sender never waits for a lock held by a thread that lost the GIL, nor for the GIL after sendto."""
+    """Messages waiting for the writer thread (a link shared by several vehicles). Senders (control
+    loops, setpoint streams) only append here: packing, sequence numbers, signing and the system
+    call are the writer's, so a sender never waits for a lock held by a thread that lost the GIL,
+    nor for the GIL after sendto."""
 
     def __init__(self) -> None:
         self.msgs: collections.deque[Any] = collections.deque()
@@ -79,7 +81,7 @@ class _Outbox:
 
 
 class _Packets:
-    """The file-like object pymavlink's MAVLink.send writes to (writer thread only)."""
+    """The file-like object pymavlink's MAVLink.send writes to (under the send lock)."""
 
     def __init__(self) -> None:
         self.packets: list[bytes] = []
@@ -120,9 +122,11 @@ class MavlinkConnection:
         self.identity = identity
         self._clock = clock
         self._transport: Transport | None = None
-        self._tx: Any = None  # pymavlink MAVLink used for sending (writer thread only)
+        self._tx: Any = None  # pymavlink MAVLink used for sending (under _tx_lock)
         self._rx: Any = None  # pymavlink MAVLink used for parsing (reader thread only)
         self._sending = False  # True from open until close or failure
+        self._queued = False  # True once a second vehicle shares the link: senders queue for the writer
+        self._tx_lock = threading.Lock()  # packing and writing, in order
         self._reader: threading.Thread | None = None
         self._writer: threading.Thread | None = None
         self._stop_reader = threading.Event()
@@ -166,6 +170,7 @@ class MavlinkConnection:
                     "system id"
                 )
             self._by_system[system_id] = state
+            self._queued = self._queued or len(self._by_system) > 1
 
     def detach(self, state: VehicleState) -> int:
         """Stop routing to ``state``; returns how many vehicles remain."""
@@ -238,9 +243,10 @@ class MavlinkConnection:
             if thread is not None:
                 await asyncio.to_thread(thread.join, 2.0)
                 setattr(self, attr, None)
-        self._sending = False
-        if self._transport is not None:
-            self._transport.close()
+        with self._tx_lock:
+            self._sending = False
+            if self._transport is not None:
+                self._transport.close()
 
     def pin_last_sender(self) -> None:
         """Reply only to the address the last packet came from (the autopilot's, or its router's)."""
@@ -250,11 +256,36 @@ class MavlinkConnection:
             transport.pin_peer(sender)
 
     def send(self, msg: Any) -> bool:
-        """Queue one message for the writer thread (any thread); False (dropped) once closed or dead."""
+        """Send one message (any thread); False (dropped) once closed or dead. Alone on the link it
+        goes out at once from the caller's thread; with vehicles sharing it, it is queued for the
+        writer thread."""
         if not self._sending:
             return False
-        self._outbox.put(msg)
+        if self._queued:
+            self._outbox.put(msg)
+            return True
+        with self._tx_lock:
+            if not self._sending:
+                return False
+            self._pack(msg)
+            self._flush()
         return True
+
+    def _pack(self, msg: Any) -> None:
+        """Pack one message into ``_packets`` (under ``_tx_lock``)."""
+        signing = self.identity.signing
+        if signing is not None:
+            # pymavlink counts the timestamp up by one per packet; keep it at least at "now"
+            # so an autopilot that restarts still accepts us as a fresh stream.
+            self._tx.signing.timestamp = max(self._tx.signing.timestamp, signing_timestamp(self._clock.time_ns()))
+        self._tx.send(msg)
+
+    def _flush(self) -> None:
+        """Write what is packed (under ``_tx_lock``)."""
+        transport = self._transport
+        for data in self._packets.take():
+            if transport is not None:
+                transport.send(data)
 
     # ------------------------------------------------------------------ reader thread
 
@@ -282,20 +313,18 @@ class MavlinkConnection:
                 next_hb_s = max(next_hb_s + 1.0, now + 0.5)
 
     def _write_loop(self) -> None:
-        transport = self._transport
-        assert transport is not None
-        outbox, tx, signing = self._outbox, self._tx, self.identity.signing
+        outbox = self._outbox
         while True:
             outbox.ready.wait()
             outbox.ready.clear()
-            while outbox.msgs:
-                if signing is not None:
-                    # pymavlink counts the timestamp up by one per packet; keep it at least at "now"
-                    # so an autopilot that restarts still accepts us as a fresh stream.
-                    tx.signing.timestamp = max(tx.signing.timestamp, signing_timestamp(self._clock.time_ns()))
-                tx.send(outbox.msgs.popleft())
-            for data in self._packets.take():
-                transport.send(data)
+            with self._tx_lock:
+                while outbox.msgs:
+                    msg = outbox.msgs.popleft()
+                    try:
+                        self._pack(msg)
+                    except Exception:  # noqa: BLE001 - one bad message must not stop the link's sending
+                        logger.exception("cannot pack %s for %s; dropped", msg.get_type(), self.endpoint.url)
+                self._flush()
             if self._stop_reader.is_set() and not outbox.msgs:
                 return
 
