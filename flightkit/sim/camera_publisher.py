@@ -19,7 +19,9 @@ than the configured one, which is still what tf announces.
 Timing: frames are due every ``1 / rate_hz`` of clock time. Rendering costs real time
 (about 25 ms at 320x240 and 200 ms at 640x480 on a laptop core), so when the clock runs
 faster than the renderer the publisher skips the frames it could not render (counted in
-:attr:`SimCameraPublisher.frames_skipped`) rather than fall behind. Under a
+:attr:`SimCameraPublisher.frames_skipped`) rather than fall behind; with ``render_budget_s`` a
+stall-limited :class:`~flightkit.clock.SimClock` waits for each frame instead (a camera that
+never drops a frame, as a closed loop on live VO wants, at the cost of wall time). Under a
 :class:`~flightkit.clock.LockstepClock` time stands still while rendering, so every due
 frame is published exactly.
 """
@@ -63,6 +65,8 @@ class SimCameraPublisher(Running):
         scene: what to render (default: the lab with textured boxes).
         timing: the camera clock's offset and drift (default: none).
         true_T_body_camera: the mount rendered from (default: the configured one).
+        render_budget_s: simulated time a frame's rendering may take; the clock waits for a
+            slower host (see :meth:`flightkit.clock.SimClock.busy`). None: skip late frames.
 
     Use :meth:`start`/:meth:`stop` (or ``with``); :meth:`publish_at` renders and publishes
     one frame synchronously (for scripted tests).
@@ -80,12 +84,14 @@ class SimCameraPublisher(Running):
         scene: Scene | None = None,
         timing: SimTimingErrors | None = None,
         true_T_body_camera: Transform | None = None,  # noqa: N803
+        render_budget_s: float | None = None,
     ) -> None:
         cap = streams or CameraStreamSelection()
         if not (cap.color or cap.depth or cap.stereo):
             raise BusError("no camera stream enabled; set capture.color, capture.depth or capture.stereo to true")
         self._truth = truth
         self._clock = clock
+        self.render_budget_s = render_budget_s
         self._keys = keys
         self.rate_hz = camera_cfg.rate_hz
         self.T_body_camera = camera_cfg.T_body_camera.to_transform()
@@ -220,7 +226,11 @@ class SimCameraPublisher(Running):
                     break
                 now_s = self._clock.monotonic_s()
                 stamp_ns = self.timing.camera_stamp_ns(self._clock.time_ns(), start_ns)
-                self.publish_at(stamp_ns, self._truth(now_s))
+                if self.render_budget_s is None:
+                    self.publish_at(stamp_ns, self._truth(now_s))
+                else:
+                    with self._clock.busy(self.render_budget_s):
+                        self.publish_at(stamp_ns, self._truth(now_s))
                 n += 1
                 behind = self._clock.monotonic_s() - (t0 + n * period)
                 if behind > period and not lockstep:

@@ -90,6 +90,8 @@ class SimLabPublishers(SimPublishers):
         streams: which camera streams (default: colour and depth, extrinsics on tf).
         true_T_world_mocap: where the mocap frame really is (default: the config's).
         owns_session: close ``session`` on :meth:`stop`.
+        render_budget_s: the camera renders every frame within this much simulated time (the
+            clock waits); None skips the frames it cannot render in time.
 
     Start with :meth:`start` or ``with``; both publishers run on their own threads.
     """
@@ -104,6 +106,7 @@ class SimLabPublishers(SimPublishers):
         streams: CameraStreamSelection | None = None,
         true_T_world_mocap: Transform | None = None,  # noqa: N803
         owns_session: bool = False,
+        render_budget_s: float | None = None,
     ) -> None:
         keys = Keys(lab_cfg.vehicle.namespace)
         system = SimMocapSystem(
@@ -124,7 +127,7 @@ class SimLabPublishers(SimPublishers):
             [
                 SimCameraPublisher(
                     session, keys, lab.T_world_body, lab_cfg.camera, lab.clock, streams=streams,
-                    timing=self.timing, true_T_body_camera=true_mount,
+                    timing=self.timing, true_T_body_camera=true_mount, render_budget_s=render_budget_s,
                 )
             ]
             if use_camera
