@@ -35,8 +35,9 @@ from mcap.summary import Summary
 
 from flightkit.bus.cdr import CdrReader
 from flightkit.bus.msgs import CameraInfo, CompressedImage, Header, Image, PoseStamped, TFMessage
+from flightkit.calibration.result import METADATA_RECORD, CalibrationResult
 from flightkit.datasets.trajectory import Trajectory
-from flightkit.errors import BusError, DatasetError
+from flightkit.errors import BusError, CalibrationError, DatasetError
 from flightkit.frames import Transform, WorldFrames, quat_xyzw_to_wxyz
 
 __all__ = [
@@ -340,6 +341,21 @@ class RecordingReader:
             T_bc = self._tf_extrinsics()  # noqa: N806
         extra = {k: v for k, v in self.metadata.items() if k.startswith("calibration")}
         return RecordingCalibration(T_wm, T_bc, ext.get("mocap_body", ""), extra)
+
+    def measured_calibration(self) -> CalibrationResult | None:
+        """The ``flightkit calibrate`` result stored in the recording (record
+        :data:`~flightkit.calibration.result.METADATA_RECORD`), None when it has none.
+
+        Raises:
+            DatasetError: the record is malformed.
+        """
+        record = self.metadata.get(METADATA_RECORD)
+        if record is None:
+            return None
+        try:
+            return CalibrationResult.from_metadata(record)
+        except CalibrationError as exc:
+            raise DatasetError(f"{self.path}: the {METADATA_RECORD} record is unusable ({exc})") from exc
 
     def _tf_extrinsics(self) -> Transform | None:
         for m in self.messages(self.tf_topics(), log_time_order=False):
