@@ -267,7 +267,7 @@ class SimMocapSource(WorldFrameSource):
     Args:
         lab: the simulated lab whose vehicle is tracked (its clock drives the sampling).
         body: rigid-body name of the vehicle.
-        rate_hz, noise_m, seed: see :class:`SimMocapSystem`.
+        rate_hz, noise_m, seed, latency_s: see :class:`SimMocapSystem`.
         T_world_mocap: the calibration the source applies (what ``mocap.T_world_mocap`` in
             config holds).
         true_T_world_mocap: where the mocap frame really is (default: ``T_world_mocap``); give a
@@ -295,6 +295,7 @@ class SimMocapSource(WorldFrameSource):
         static_bodies: Mapping[str, Transform] | None = None,
         system: SimMocapSystem | None = None,
         clock: Clock | None = None,
+        latency_s: float = 0.0,
     ) -> None:
         if system is None:
             if lab is None:
@@ -307,6 +308,7 @@ class SimMocapSource(WorldFrameSource):
                 noise_m=noise_m,
                 seed=seed,
                 static_bodies=static_bodies,
+                latency_s=latency_s,
             )
         clk = clock or (lab.clock if lab is not None else system.clock)
         super().__init__(
