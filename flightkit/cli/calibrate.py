@@ -49,8 +49,8 @@ def add_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--camera-trajectory", type=Path, metavar="FILE",
                    help="the camera's poses (TUM) at its own stamps, instead of running VO")
     p.add_argument("--board", metavar="SPEC",
-                   help="a ChArUco board fixed in the room, SQUARESxSQUARES:SQUARE_M:MARKER_M[:DICT] "
-                   "(e.g. 5x7:0.04:0.03): the camera's motion comes from it instead of VO")
+                   help="a board fixed in the room, [charuco|apriltag:]NXxNY:SQUARE_M:MARKER_M[:DICT] "
+                   "(e.g. 5x7:0.04:0.03, apriltag:6x6:0.05:0.04): the camera's motion comes from it instead of VO")
     p.add_argument("--method", default="rgbd-pnp", help="VO method for the camera's motion (default rgbd-pnp)")
     p.add_argument("--camera", help="camera name in the recording (default: its main camera)")
     p.add_argument("--body", help="mocap body (default: the config's or the recording's)")
