@@ -133,7 +133,7 @@ class BoardDetector:
                 (spec.squares_x, spec.squares_y), spec.marker_m, spec.square_m - spec.marker_m, dictionary
             )
             params = cv2.aruco.DetectorParameters()
-            params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_APRILTAG  # 0.12 px on a rendered grid (SUBPIX: 0.73)
+            params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_APRILTAG  # 0.12 px rendered (SUBPIX: 0.73)
             self.detector = cv2.aruco.ArucoDetector(dictionary, params)
         self.K = np.asarray(camera_matrix, dtype=np.float64).reshape(3, 3)
         self.dist = np.zeros(5) if dist_coeffs is None else np.asarray(dist_coeffs, dtype=np.float64).reshape(-1)

@@ -11,7 +11,6 @@ from collections.abc import Callable
 from pathlib import Path
 
 import cv2
-
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation

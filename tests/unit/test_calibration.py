@@ -24,7 +24,7 @@ from flightkit.calibration import (
     transform_difference,
     velocity_from_poses,
 )
-from flightkit.calibration.board import BoardSpec, BoardDetector, aruco_available
+from flightkit.calibration.board import BoardDetector, BoardSpec, aruco_available
 from flightkit.datasets.mcap_reader import transform_from_json
 from flightkit.datasets.trajectory import Trajectory
 from flightkit.errors import CalibrationError, FlightkitError
