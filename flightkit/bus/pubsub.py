@@ -200,9 +200,9 @@ class BusPublisher:
         status = cast("zenoh.MatchingStatus", self._pub.matching_status)
         return status.matching
 
-    def put(self, payload: bytes | bytearray, stamp_ns: int) -> int:
-        """Send one encoded payload with capture stamp ``stamp_ns`` (and the bus time now);
-        returns its sequence number.
+    def put(self, payload: bytes | bytearray, stamp_ns: int, bus_ns: int | None = None) -> int:
+        """Send one encoded payload with capture stamp ``stamp_ns`` and bus time ``bus_ns``
+        (default: the clock's now; a replay passes the recorded one); returns its sequence number.
 
         ``payload`` is copied by Zenoh before this returns, so a reused buffer may be
         overwritten afterwards.
@@ -212,7 +212,8 @@ class BusPublisher:
                 raise BusError(f"publisher on {self.key!r} is closed; create a new one")
             self._seq += 1
             seq = self._seq
-            attachment = _ATTACHMENT.pack(_MAGIC, seq, int(stamp_ns), self.stream_id, self._time_ns(), self._code)
+            bus = self._time_ns() if bus_ns is None else int(bus_ns)
+            attachment = _ATTACHMENT.pack(_MAGIC, seq, int(stamp_ns), self.stream_id, bus, self._code)
             try:
                 self._pub.put(payload, attachment=attachment)
             except zenoh.ZError as exc:
