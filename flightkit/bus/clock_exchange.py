@@ -252,7 +252,7 @@ class ClockWatch(Running):
     def _run(self) -> None:
         while not self._stop.is_set():
             try:
-                self.exchange_round()
+                self.exchange_round(timeout_s=min(0.25, self.interval_s))  # a stop waits at most this
             except BusError as exc:
                 logger.debug("clock exchange round failed: %s", exc)
             except Exception:  # the session closed under us
