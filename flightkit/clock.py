@@ -28,9 +28,19 @@ from typing import Protocol, runtime_checkable
 
 from flightkit.errors import SimError
 
+STAMP_DEVICE = "device"
+"""A capture stamp that is the device's own capture time (frame metadata, buffer time, mocap frame time)."""
+STAMP_HOST = "host"
+"""A capture stamp that is the host's time when the driver handed the sample over (the device gives none)."""
+STAMP_SOURCES = ("", STAMP_DEVICE, STAMP_HOST)
+"""Bus attachment code -> stamp source (``""``: not said, e.g. a foreign or older publisher)."""
+
 __all__ = [
     "LATE_SLEEPER_LEAD_S",
     "LATE_SLEEPER_PATIENCE_WALL_S",
+    "STAMP_DEVICE",
+    "STAMP_HOST",
+    "STAMP_SOURCES",
     "ONE_PROCESS_WALL_STEP_S",
     "Clock",
     "LockstepClock",

@@ -230,6 +230,10 @@ class MocapConfig:
     options: dict[str, str] = setting(default_factory=dict, help="extra motioncapture options (strings)")
     T_world_mocap: TransformConfig = setting(default_factory=TransformConfig, help="mocap frame in the world")
     stale_after_s: float = setting(0.2, min=0.001, max=10.0, help="pose age that counts as stale")
+    predict_latency_ms: float = setting(
+        0.0, min=0.0, max=200.0,
+        help="known mocap latency: the runner's controller tracks the pose predicted this far ahead (0: off)",
+    )
 
 
 @dataclass(frozen=True, slots=True)

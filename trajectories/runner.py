@@ -88,6 +88,7 @@ class FlightRunner:
         log: flight log to write each cycle to (None: no log).
         on_status: called with a :class:`Status` about 5 times a second (from the event loop).
         name: plan name for the summary.
+        predict_latency_s: see :class:`~trajectories.control_loop.ControlLoop`.
     """
 
     def __init__(
@@ -103,6 +104,7 @@ class FlightRunner:
         log: FlightLog | None = None,
         on_status: Callable[[Status], None] | None = None,
         name: str = "flight",
+        predict_latency_s: float = 0.0,
     ) -> None:
         self.link = link
         self.clock = clock
@@ -125,6 +127,7 @@ class FlightRunner:
             summary=self.summary,
             log=log,
             on_status=on_status,
+            predict_latency_s=predict_latency_s,
         )
         self.reactor = FaultReactor(
             self.loop, safety=self.safety, landed_timeout_s=self.settings.landed_timeout_s, land=self._controlled_land

@@ -30,13 +30,14 @@ from __future__ import annotations
 import logging
 import math
 import threading
-from typing import Self
+from typing import Any, Self
 
 import cv2
 import numpy as np
 import zenoh
 
 from flightkit.bus.keys import Keys
+from flightkit.bus.pubsub import STAMP_DEVICE
 from flightkit.bus.streams import CameraModel, CameraStream, CameraStreamSelection, TfPublisher, optical_frame_id
 from flightkit.clock import Clock, sleep_until
 from flightkit.config import CameraConfig
@@ -108,16 +109,19 @@ class SimCameraPublisher(Running):
         color_frame = optical_frame_id(keys, "color")
         self._streams: list[CameraStream] = []
         self.color = self.depth = self.left = self.right = None
+        # the camera's own capture stamps (true exposure time on its late, drifting clock); bus time from the clock
+        stamping: dict[str, Any] = {"clock": clock, "stamp_source": STAMP_DEVICE}
         if cap.color:
-            self.color = CameraStream(session, keys, "color", self.model, "rgb8", jpeg_quality=cap.jpeg_quality)
+            self.color = CameraStream(session, keys, "color", self.model, "rgb8", jpeg_quality=cap.jpeg_quality,
+                                      **stamping)
         if cap.depth:  # aligned to colour: same optical frame
-            self.depth = CameraStream(session, keys, "depth", self.model, "16UC1", frame_id=color_frame)
+            self.depth = CameraStream(session, keys, "depth", self.model, "16UC1", frame_id=color_frame, **stamping)
         if cap.stereo:
-            self.left = CameraStream(session, keys, "left", self.model, "mono8", frame_id=color_frame)
+            self.left = CameraStream(session, keys, "left", self.model, "mono8", frame_id=color_frame, **stamping)
             right_model = CameraModel(w, h, fx, fy, cx, cy, (0.0,) * 5, -fx * camera_cfg.stereo_baseline_m)
-            self.right = CameraStream(session, keys, "right", right_model, "mono8")
+            self.right = CameraStream(session, keys, "right", right_model, "mono8", **stamping)
         self._streams = [s for s in (self.color, self.depth, self.left, self.right) if s is not None]
-        self._tf = TfPublisher(session, keys) if cap.tf else None
+        self._tf = TfPublisher(session, keys, clock, STAMP_DEVICE) if cap.tf else None
         self.frames_published = 0
         self.frames_skipped = 0
         self.last_T_world_camera: Transform | None = None
