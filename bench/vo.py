@@ -58,7 +58,7 @@ from bench._synthetic import SYNTHETIC, prerendered  # noqa: E402
 from estimation.baselines import run_plain  # noqa: E402
 from estimation.evaluation import Alignment, ape, lab_errors, rpe  # noqa: E402
 from estimation.lab_sift import run_baseline  # noqa: E402
-from estimation.pipeline import Method, Quality, VoOptions, VoResult, run_vo, warm_up  # noqa: E402
+from estimation.pipeline import FlowOptions, Method, Quality, VoOptions, VoResult, run_vo, warm_up  # noqa: E402
 from flightkit.datasets.registry import open_sequence  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -176,7 +176,7 @@ def main() -> int:
             plan: list[tuple[str, str, Any]] = []  # (row name, what to run, method or options)
             for name in methods:
                 m, _, variant = name.partition("@")
-                opts = VoOptions(flow_depth="stereo") if variant == "stereo" else VoOptions()
+                opts = VoOptions(estimator=FlowOptions(depth="stereo")) if variant == "stereo" else VoOptions()
                 plan.append((name, m, opts))
                 if args.ba and Method(m) is not Method.FLOW:
                     plan.append((f"{m}+ba{args.ba}", m, replace(opts, ba_window=args.ba)))
