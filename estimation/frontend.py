@@ -70,6 +70,8 @@ class CameraGeometry:
         )
         self.depth_intr = depth_intrinsics
         self.use_depth_images = use_depth_images
+        self.disparity_offset_px = 0.0
+        """Added to every measured disparity before triangulation (``estimation.stereo_offset``)."""
         # A virtual baseline that turns depth-image depth into a disparity for the pose polish.
         self.virtual_baseline_m = float(baseline_m) if baseline_m else 0.1
         w = intrinsics.width
@@ -149,7 +151,7 @@ class CameraGeometry:
             min_disparity_px=self.opts.min_disparity_px,
         )
         zmax = self.max_stereo_depth_m() if max_depth_m is None else max_depth_m
-        X, ok2 = triangulate(px, disp, self.rig, self.opts.min_depth_m, zmax)
+        X, ok2 = triangulate(px, disp + np.float32(self.disparity_offset_px), self.rig, self.opts.min_depth_m, zmax)
         return X, ok & ok2
 
     def max_stereo_depth_m(self) -> float:

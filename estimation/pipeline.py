@@ -65,8 +65,9 @@ from estimation.flow_vo import FlowEstimator
 from estimation.frontend import CameraGeometry, FrontEnd
 from estimation.local_ba import LocalBundleWindow
 from estimation.motion import Motion, invert, median
-from estimation.polish import PosePolisher
+from estimation.polish import Meas, PosePolisher
 from estimation.pose_track import PoseTrack
+from estimation.stereo_offset import DisparityOffset
 from estimation.vo_options import (
     EssentialOptions,
     FlowOptions,
@@ -176,6 +177,12 @@ class VisualOdometry:
             self._flow = FlowEstimator(self.geo, o, fo, self.pose, self.front.orb, self.rng)
         else:
             self._estimator = keyframe_estimator(self.method, self.geo, self.polisher, o, self.path_counts, self.rng)
+        rig = self.geo.rig
+        self.offset = (
+            DisparityOffset(rig.fx, rig.fy, rig.cx, rig.cy, rig.baseline_m)
+            if stereo and rig is not None and o.stereo_offset
+            else None
+        )
         self.ba = (
             LocalBundleWindow(o.ba_window, self.geo.K, intrinsics.fx, self.geo.virtual_baseline_m)
             if o.ba_window > 1
@@ -261,6 +268,20 @@ class VisualOdometry:
         if self.ba is not None:
             f = self.front
             self.ba.add_keyframe(f.T_world_kf, f.kf_ids, self.geo.undistort(f.kf_px), f.kf_X)
+
+    def _observe_offset(self, meas: Meas | None, idx: npt.NDArray[np.intp], T_cur_prev: F64) -> None:
+        """Stereo: feed this frame's measured disparities to the disparity-offset estimate."""
+        assert self.offset is not None
+        if meas is None or not len(meas[0]):
+            self.offset.forget()
+            return
+        g = self.geo
+        X = meas[1]
+        z = X[:, 2]
+        und = np.c_[X[:, 0] / z * g.intr.fx + g.intr.cx, X[:, 1] / z * g.intr.fy + g.intr.cy]
+        d_raw = self.offset.fb / z - g.disparity_offset_px
+        self.offset.observe(self.front.kf_ids[idx[meas[0]]], und, d_raw, T_cur_prev)
+        g.disparity_offset_px = self.offset.offset_px
 
     def _process_keyframe(
         self,
@@ -354,6 +375,8 @@ class VisualOdometry:
         if motion is not None and not fallback and meas is not None and o.fuse_depth:
             front.fuse(idx[meas[0]], meas[1], T_cur_kf)
             fused = True
+        if self.offset is not None:
+            self._observe_offset(meas if motion is not None and not fallback else None, idx, T_cur_prev)
 
         # Keep the inlier tracks (all valid tracks when the estimate was not from them).
         if motion is not None and not fallback:

@@ -147,8 +147,9 @@ class PosePolisher:
             if right_gray is None or geo.rig is None:
                 return refine_pose(T, X_kf, und, geo.K)
             fb = geo.rig.fx * geo.rig.baseline_m
+            off = np.float32(geo.disparity_offset_px)
             z_pred = X_kf @ T[2, :3] + T[2, 3]
-            init = (fb / np.maximum(z_pred, 1e-3)).astype(np.float32)
+            init = (fb / np.maximum(z_pred, 1e-3)).astype(np.float32) - off
             disp, ok = sparse_disparity(
                 gray,
                 right_gray,
@@ -161,7 +162,7 @@ class PosePolisher:
             )
             # A disparity far from the prediction is a mismatch, not a measurement.
             ok &= np.abs(disp - init) < np.maximum(2.0, 0.3 * init)
-            d = np.where(ok, disp, np.nan)
+            d = np.where(ok, disp + off, np.nan)
         elif depth_m is not None:
             fb = geo.intr.fx * geo.virtual_baseline_m
             if z is None:

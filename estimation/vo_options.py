@@ -183,11 +183,13 @@ class VoOptions:
         min_depth_m, max_depth_m: accepted depth range (stereo and depth images), m.
         init_min_depth_fraction: RGB-D: hold the start pose (``INIT``) until this fraction of the
             depth image is in range (0: start at once).
-        max_depth_baselines: stereo points farther than this many baselines are not used.
-        min_disparity_px: stereo points with a smaller disparity are not used, px.
+        max_depth_baselines: stereo points farther than this many baselines are not used (inf: all kept).
+        min_disparity_px: stereo points with a smaller disparity are not used, px (the matching noise floor).
         refine_with_depth: polish poses on the current frame's depth too (``motion.refine_pose``).
         fuse_depth: fuse each frame's depth of tracked points into their 3D estimates.
         stereo_fb_check: also check left-right stereo matches right-to-left.
+        stereo_offset: stereo: estimate the pair's disparity offset online (``estimation.stereo_offset``; off:
+            see docs/estimation-log.md).
         orb_fallback: match ORB against the keyframe when tracking fails (``FALLBACK``).
         keyframes: the keyframe policy (:class:`~estimation.keyframes.KeyframePolicy`).
         parallax_ref_width_px: rgbd-pnp/-essential on narrower images: parallax scaled to this width.
@@ -220,6 +222,7 @@ class VoOptions:
     refine_with_depth: bool = True
     fuse_depth: bool = True
     stereo_fb_check: bool = False
+    stereo_offset: bool = False
     orb_fallback: bool = True
     keyframes: KeyframePolicy = field(default_factory=KeyframePolicy)
     parallax_ref_width_px: int = 640
