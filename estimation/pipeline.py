@@ -189,11 +189,6 @@ class VisualOdometry:
             else None
         )
 
-    @property
-    def T_world_cam(self) -> F64:
-        """The current camera pose."""
-        return self.pose.T_world_cam
-
     def _emit(self, stamp_ns: int, n_inl: int, q: Quality, kf: bool, timer: FrameTimer) -> FramePose:
         timer.ms["total"] = sum(v for k, v in timer.ms.items() if k != "total")
         T = self.pose.T_world_cam
