@@ -101,7 +101,7 @@ class DisparityOffset:
         """Every point's residuals (noise-weighted by ``w``, 4 per point) with its inverse depth
         fitted (both disparities are measurements: no error-in-variables bias)."""
         rho = np.maximum(d0 + p[3], 1e-3) / self.fb
-        for _ in range(3):
+        for _ in range(2):
             r = self._point_residuals(p, R, x0, rho, d0, uv1, d1) * w[:, None]
             h = 1e-4 * rho
             J = (self._point_residuals(p, R, x0, rho + h, d0, uv1, d1) * w[:, None] - r) / h
@@ -125,7 +125,7 @@ class DisparityOffset:
         steps = np.array([1e-4, 1e-4, 1e-4, 1e-3])
         H = np.eye(4)
         r = self._residuals(p, R, x0, d0, uv1, d1, w)
-        for _ in range(6):
+        for _ in range(3):
             J = np.empty((len(r), 4))
             for k in range(4):
                 dp = np.zeros(4)
