@@ -98,6 +98,8 @@ class FlightSummary:
         latency_p50_ms / latency_p99_ms: from a mocap sample reaching this process to the setpoint
             computed from it leaving (the sample's age at the cycle plus the cycle), per cycle.
         log_path: the flight log file (None when not logging).
+        companion_loss: what the autopilot would have done had flightkit stopped (the preflight's
+            one line, from its failsafe parameters; empty when not checked).
     """
 
     plan: str
@@ -114,6 +116,7 @@ class FlightSummary:
     latency_p50_ms: float = math.nan
     latency_p99_ms: float = math.nan
     log_path: str | None = None
+    companion_loss: str = ""
 
     def phase(self, name: str) -> PhaseStats:
         """The stats of phase ``name`` (KeyError if it was not flown)."""
@@ -142,6 +145,7 @@ class FlightSummary:
             "phases": [p.to_dict() for p in self.phases],
             "faults": [f.to_dict() for f in self.faults],
             "log_path": self.log_path,
+            "companion_loss": self.companion_loss,
         }
 
     def to_json(self) -> str:
@@ -166,6 +170,8 @@ class FlightSummary:
             lines.extend(f"    t={f.time_s:7.2f} s  {f.kind.value:<18} {f.message}" for f in self.faults)
         else:
             lines.append("  faults: none")
+        if self.companion_loss:
+            lines.append(f"  {self.companion_loss}")
         if self.log_path:
             lines.append(f"  log: {self.log_path}")
         return "\n".join(lines)

@@ -203,9 +203,34 @@ class FlightRunner:
             self.safety, loop.body, tuple(loop.mocap.bodies()), pos is not None, self.link.telemetry, pos
         )
         problems += stream
+        problems += await self._companion_loss_problems()
         if problems:
             raise SafetyAbort("preflight", "preflight failed: " + "; ".join(problems))
         logger.info("preflight ok: body %r at %s", loop.body, pos)
+
+    async def _companion_loss_problems(self) -> list[str]:
+        """Read the parameters that decide what the autopilot does if flightkit stops (the
+        firmware's traits name them), log that in one line and keep it in the summary; a reason
+        not to arm when it would hover armed until the battery runs out, unless
+        ``allow_hover_on_companion_loss``."""
+        traits, link = self.traits, self.link
+        values = await link.read_params(traits.failsafe_params)
+        older = [old for name, old in traits.failsafe_param_fallbacks.items() if name not in values]
+        if older:
+            values.update(await link.read_params(older))
+        verdict = traits.companion_loss(values, link.info.our_system_id)
+        self.summary.companion_loss = verdict.summary
+        if not verdict.hovers:
+            logger.info("%s", verdict.summary)
+            return []
+        if self.safety.allow_hover_on_companion_loss:
+            logger.warning("%s; arming anyway ([safety] allow_hover_on_companion_loss)", verdict.summary)
+            return []
+        logger.warning("%s", verdict.summary)
+        return [
+            f"{verdict.reason}; or accept it with [safety] allow_hover_on_companion_loss = true "
+            "(flightkit fly --allow-hover-on-companion-loss)"
+        ]
 
     async def _watch_mocap_stream(self) -> list[str]:
         """Watch the body's poses for ``preflight_mocap_window_s``: what breaks the rate, age and

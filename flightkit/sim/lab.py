@@ -100,6 +100,11 @@ class SimLab(Running):
         )
         self.dynamics = QuadDynamics(params, start_pos_enu_m, start_yaw_rad)
         opts = options or AutopilotOptions()
+        # a lab sets its vehicle up as docs/hardware.md says; [sim.autopilot_params] and the
+        # options' own params override that
+        opts = replace(
+            opts, params={**self.personality.lab_params, **sim.autopilot_params, **opts.params}
+        )
         if url is not None:
             opts = replace(opts, url=url)
         if heading_offset_rad is not None:

@@ -113,6 +113,8 @@ class Personality:
         reject_result: MAV_RESULT sent when arming, a mode change or a take-off is refused
             (PX4 1 TEMPORARILY_REJECTED, ArduPilot 4 FAILED).
         ack_set_mode_message: answer the SET_MODE message with a COMMAND_ACK (ArduPilot does).
+        lab_params: what a lab set up as ``docs/hardware.md`` recommends changes from the
+            defaults (the simulated lab applies them; the bare autopilot serves the defaults).
     """
 
     autopilot: Autopilot
@@ -147,6 +149,7 @@ class Personality:
     reject_result: int = 1
     ack_set_mode_message: bool = False
     vehicle_name: str = field(default="")
+    lab_params: Mapping[str, float] = field(default_factory=dict)
 
     def mode_of(self, custom_mode: int) -> FlightMode | None:
         """The flight mode a custom_mode number means, or None when it is not one of ours."""
@@ -209,6 +212,9 @@ PX4 = Personality(
         {
             "COM_OF_LOSS_T": ParamSpec(1.0, ParamType.REAL32, 0.0, 60.0),
             "COM_OBL_RC_ACT": ParamSpec(0, ParamType.INT32, -1, 7),
+            "COM_RCL_EXCEPT": ParamSpec(0, ParamType.INT32, 0, 7),
+            "NAV_RCL_ACT": ParamSpec(2, ParamType.INT32, 0, 6),
+            "COM_RC_IN_MODE": ParamSpec(3, ParamType.INT32, 0, 4),
             "COM_DISARM_LAND": ParamSpec(2.0, ParamType.REAL32, -1.0, 20.0),
             "COM_DISARM_PRFLT": ParamSpec(10.0, ParamType.REAL32, -1.0, 20.0),
             "MIS_TAKEOFF_ALT": ParamSpec(2.5, ParamType.REAL32, 0.0, 100.0),
@@ -287,6 +293,9 @@ ARDUPILOT = Personality(
     params=MappingProxyType(
         {
             "GUID_TIMEOUT": ParamSpec(3.0, ParamType.REAL32, 0.1, 5.0),
+            "FS_GCS_ENABLE": ParamSpec(0, ParamType.INT8, 0, 7),
+            "FS_GCS_TIMEOUT": ParamSpec(5.0, ParamType.REAL32, 2.0, 120.0),
+            "MAV_GCS_SYSID": ParamSpec(255, ParamType.INT16, 1, 255),
             "WPNAV_SPEED": ParamSpec(500.0, ParamType.REAL32, 10.0, 2000.0),
             "WPNAV_SPEED_UP": ParamSpec(250.0, ParamType.REAL32, 10.0, 1000.0),
             "WPNAV_SPEED_DN": ParamSpec(150.0, ParamType.REAL32, 10.0, 500.0),
@@ -308,6 +317,7 @@ ARDUPILOT = Personality(
     reject_result=4,
     ack_set_mode_message=True,
     vehicle_name="ArduCopter (simulated)",
+    lab_params=MappingProxyType({"FS_GCS_ENABLE": 5.0}),  # land when flightkit's heartbeat stops
 )
 
 

@@ -2,7 +2,7 @@
 
 :class:`MavsdkConnection` creates MAVSDK with our system/component ids, adds the connection
 (``link.url`` in MAVSDK's URL form), waits for the first autopilot and builds the plugins the
-link uses (action, offboard, telemetry, mocap, mavlink_direct). :meth:`MavsdkConnection.close`
+link uses (action, offboard, telemetry, mocap, mavlink_direct, param). :meth:`MavsdkConnection.close`
 destroys MAVSDK off the event loop (it joins MAVSDK's threads).
 
 MAVSDK's own log lines (printed to stdout by default) are folded into the
@@ -75,6 +75,7 @@ class MavsdkConnection:
         self.telemetry: Any = None
         self.mocap: Any = None
         self.direct: Any = None
+        self.param: Any = None
 
     @property
     def is_open(self) -> bool:
@@ -97,6 +98,7 @@ class MavsdkConnection:
         from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync
         from mavsdk.asyncio.plugins.mocap import MocapAsync
         from mavsdk.asyncio.plugins.offboard import OffboardAsync
+        from mavsdk.asyncio.plugins.param import ParamAsync
         from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 
         conf = Configuration.create_manual(self._cfg.source_system, self._cfg.source_component, True)
@@ -123,6 +125,7 @@ class MavsdkConnection:
         self.telemetry = TelemetryAsync(system)
         self.mocap = MocapAsync(system)
         self.direct = MavlinkDirectAsync(system)
+        self.param = ParamAsync(system)
         return int(await system.get_system_id())
 
     async def close(self) -> None:
@@ -130,7 +133,7 @@ class MavsdkConnection:
         if self.mavsdk is None:
             return
         mav, self.mavsdk = self.mavsdk, None
-        self.action = self.offboard = self.telemetry = self.mocap = self.direct = None
+        self.action = self.offboard = self.telemetry = self.mocap = self.direct = self.param = None
         self.system = None
         # destroy() joins MAVSDK's threads; keep the loop responsive meanwhile.
         await asyncio.get_running_loop().run_in_executor(None, mav.destroy)
