@@ -45,7 +45,6 @@ _APM_GCS_ACTIONS = {
     4: "returns (SmartRTL, else lands) and lands",
     5: "lands",
     6: "returns (DO_LAND_START or RTL) and lands",
-    7: "brakes, then lands",
 }
 
 _PX4_OFFBOARD_LOSS_MODES = {
