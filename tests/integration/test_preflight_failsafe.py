@@ -8,10 +8,13 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import json
+from pathlib import Path
 
 import pytest
 
 from flightkit.apps.sim_session import SimSession, sim_session
+from flightkit.cli.main import main
 from flightkit.config import LabConfig, LinkBackend
 from flightkit.errors import SafetyAbort
 from trajectories.runner import FlightRunner
@@ -118,3 +121,24 @@ def test_mavsdk_reads_the_failsafe_parameters_too(autopilot: str, params: dict[s
             assert "could not be read" not in str(info.value)
 
     asyncio.run(go())
+
+
+def test_flightkit_fly_refuses_factory_arducopter_and_the_flag_overrides(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    lab_toml = tmp_path / "lab.toml"
+    lab_toml.write_text('[vehicle]\nautopilot = "ardupilot"\n\n[sim.autopilot_params]\nFS_GCS_ENABLE = 0\n')
+    plan = tmp_path / "hop.toml"
+    plan.write_text(
+        '[plan]\nname = "hop"\ntakeoff_height_m = 0.5\nhold_before_s = 0.0\nhold_after_s = 0.0\n\n'
+        '[pattern]\nkind = "hold"\nposition_m = [0.0, 0.0, 0.5]\nduration_s = 0.5\n'
+    )
+    argv = ["fly", str(plan), "--sim", "--config", str(lab_toml), "--speed", "5", "--log", "", "--json"]
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert "preflight failed: ArduCopter's GCS failsafe is off (FS_GCS_ENABLE = 0)" in err
+    assert "--allow-hover-on-companion-loss" in err
+    assert main([*argv, "--allow-hover-on-companion-loss"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["outcome"] == "completed"
+    assert "hovers armed in GUIDED until the battery runs out (FS_GCS_ENABLE = 0)" in summary["companion_loss"]
