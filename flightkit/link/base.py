@@ -110,21 +110,14 @@ def firmware_traits(autopilot: Autopilot) -> FirmwareTraits:
     """The traits of ``autopilot``'s firmware (PX4 or ArduCopter)."""
     if autopilot is Autopilot.PX4:
         return FirmwareTraits(
-            FlightMode.OFFBOARD,
-            setpoint_prestream_s=1.2,
-            liftoff_m=0.0,
-            autopilot=Autopilot.PX4,
-            failsafe_params=PX4_PARAMS,
+            FlightMode.OFFBOARD, setpoint_prestream_s=1.2, liftoff_m=0.0,
+            autopilot=Autopilot.PX4, failsafe_params=PX4_PARAMS,
         )
     # ArduCopter climbs at its own rate on that command (WPNAV_SPEED_UP, 2.5 m/s by default: above
     # the supervisor's 2 m/s limit on a tall take-off), so it lifts the vehicle only this far.
     return FirmwareTraits(
-        FlightMode.GUIDED,
-        setpoint_prestream_s=0.1,
-        liftoff_m=0.3,
-        autopilot=Autopilot.ARDUPILOT,
-        failsafe_params=ARDUPILOT_PARAMS,
-        failsafe_param_fallbacks=ARDUPILOT_FALLBACK_PARAMS,
+        FlightMode.GUIDED, setpoint_prestream_s=0.1, liftoff_m=0.3, autopilot=Autopilot.ARDUPILOT,
+        failsafe_params=ARDUPILOT_PARAMS, failsafe_param_fallbacks=ARDUPILOT_FALLBACK_PARAMS,
     )
 
 

@@ -118,41 +118,36 @@ def _ardupilot(params: Mapping[str, float], our_system_id: int) -> CompanionLoss
     if gcs_id is None and _get(params, "SYSID_MYGCS") is not None:
         gcs_id, gcs_name = _get(params, "SYSID_MYGCS"), "SYSID_MYGCS"
     hover = f"if flightkit stops: ArduCopter {keep}, then hovers armed in GUIDED until the battery runs out"
+
+    def hovering(note: str, reason: str) -> CompanionLoss:
+        return CompanionLoss(hover + note + _unread_note(unread), True, reason, tuple(unread))
+
     if enable is None:
         unread.append("FS_GCS_ENABLE")
-        return CompanionLoss(
-            hover + _unread_note(unread),
-            True,
+        return hovering(
+            "",
             "FS_GCS_ENABLE could not be read, so nothing shows that ArduCopter's GCS failsafe would land "
             "the vehicle; check the link, or set FS_GCS_ENABLE = 5 (land) and read it back",
-            tuple(unread),
         )
     if enable == 0:
-        return CompanionLoss(
-            hover + " (FS_GCS_ENABLE = 0)" + _unread_note(unread),
-            True,
+        return hovering(
+            " (FS_GCS_ENABLE = 0)",
             "ArduCopter's GCS failsafe is off (FS_GCS_ENABLE = 0); set FS_GCS_ENABLE = 5 (land) so the "
             "vehicle lands when flightkit's heartbeat stops (docs/hardware.md)",
-            tuple(unread),
         )
     if gcs_id is None:
         unread.append("MAV_GCS_SYSID")
-        return CompanionLoss(
-            hover + _unread_note(unread),
-            True,
+        return hovering(
+            "",
             "MAV_GCS_SYSID could not be read, so nothing shows that ArduCopter's GCS failsafe watches "
             f"flightkit's heartbeat (system {our_system_id}); set MAV_GCS_SYSID = {our_system_id}",
-            tuple(unread),
         )
     if int(gcs_id) != our_system_id:
-        return CompanionLoss(
-            hover + f" (its GCS failsafe watches system {int(gcs_id)}, not flightkit's {our_system_id})"
-            + _unread_note(unread),
-            True,
+        return hovering(
+            f" (its GCS failsafe watches system {int(gcs_id)}, not flightkit's {our_system_id})",
             f"ArduCopter's GCS failsafe watches the heartbeat of system {gcs_name} = {int(gcs_id)}, but "
             f"flightkit is system {our_system_id}; set {gcs_name} = {our_system_id} (or link.source_system "
             f"= {int(gcs_id)})",
-            tuple(unread),
         )
     action = _APM_GCS_ACTIONS.get(int(enable), f"takes failsafe action {int(enable)}")
     timeout = _get(params, "FS_GCS_TIMEOUT")

@@ -212,9 +212,6 @@ PX4 = Personality(
         {
             "COM_OF_LOSS_T": ParamSpec(1.0, ParamType.REAL32, 0.0, 60.0),
             "COM_OBL_RC_ACT": ParamSpec(0, ParamType.INT32, -1, 7),
-            "COM_RCL_EXCEPT": ParamSpec(0, ParamType.INT32, 0, 7),
-            "NAV_RCL_ACT": ParamSpec(2, ParamType.INT32, 0, 6),
-            "COM_RC_IN_MODE": ParamSpec(3, ParamType.INT32, 0, 4),
             "COM_DISARM_LAND": ParamSpec(2.0, ParamType.REAL32, -1.0, 20.0),
             "COM_DISARM_PRFLT": ParamSpec(10.0, ParamType.REAL32, -1.0, 20.0),
             "MIS_TAKEOFF_ALT": ParamSpec(2.5, ParamType.REAL32, 0.0, 100.0),
@@ -230,6 +227,10 @@ PX4 = Personality(
             "EKF2_EV_DELAY": ParamSpec(0.0, ParamType.REAL32, 0.0, 300.0),
             "SYS_AUTOSTART": ParamSpec(10040, ParamType.INT32, 0, 9999999),
             "MAV_SYS_ID": ParamSpec(1, ParamType.INT32, 1, 250),
+            # what it does when flightkit stops (read by the preflight; docs/hardware.md)
+            "COM_RCL_EXCEPT": ParamSpec(0, ParamType.INT32, 0, 7),
+            "NAV_RCL_ACT": ParamSpec(2, ParamType.INT32, 0, 6),
+            "COM_RC_IN_MODE": ParamSpec(3, ParamType.INT32, 0, 4),
         }
     ),
     param_bytewise=True,
@@ -293,9 +294,6 @@ ARDUPILOT = Personality(
     params=MappingProxyType(
         {
             "GUID_TIMEOUT": ParamSpec(3.0, ParamType.REAL32, 0.1, 5.0),
-            "FS_GCS_ENABLE": ParamSpec(0, ParamType.INT8, 0, 7),
-            "FS_GCS_TIMEOUT": ParamSpec(5.0, ParamType.REAL32, 2.0, 120.0),
-            "MAV_GCS_SYSID": ParamSpec(255, ParamType.INT16, 1, 255),
             "WPNAV_SPEED": ParamSpec(500.0, ParamType.REAL32, 10.0, 2000.0),
             "WPNAV_SPEED_UP": ParamSpec(250.0, ParamType.REAL32, 10.0, 1000.0),
             "WPNAV_SPEED_DN": ParamSpec(150.0, ParamType.REAL32, 10.0, 500.0),
@@ -309,6 +307,10 @@ ARDUPILOT = Personality(
             "EK3_SRC1_YAW": ParamSpec(1, ParamType.INT8, 0, 6),
             "SYSID_THISMAV": ParamSpec(1, ParamType.INT16, 1, 255),
             "FRAME_CLASS": ParamSpec(1, ParamType.INT8, 0, 20),
+            # what it does when flightkit stops (read by the preflight; docs/hardware.md)
+            "FS_GCS_ENABLE": ParamSpec(0, ParamType.INT8, 0, 7),
+            "FS_GCS_TIMEOUT": ParamSpec(5.0, ParamType.REAL32, 2.0, 120.0),
+            "MAV_GCS_SYSID": ParamSpec(255, ParamType.INT16, 1, 255),
         }
     ),
     param_bytewise=False,

@@ -134,3 +134,15 @@ def test_param_values_decode_bytewise_and_c_cast(value: int, ptype: int) -> None
     assert decode_param_value(wire, ptype, bytewise=True) == value
     assert decode_param_value(float(value), ptype, bytewise=False) == value
     assert decode_param_value(2.5, 9, bytewise=True) == 2.5  # REAL32 is the float itself
+
+
+def test_the_simulated_firmwares_serve_the_factory_defaults_and_the_lab_set_up_lands() -> None:
+    from flightkit.sim.personality import ARDUPILOT, PX4
+
+    apm_factory = {n: float(s.default) for n, s in ARDUPILOT.params.items()}
+    assert {n: apm_factory[n] for n in APM_DEFAULTS} == APM_DEFAULTS  # ArduCopter 4.7 as shipped
+    assert companion_loss(Autopilot.ARDUPILOT, apm_factory, 255).hovers
+    assert not companion_loss(Autopilot.ARDUPILOT, {**apm_factory, **ARDUPILOT.lab_params}, 255).hovers
+    px4_factory = {n: float(s.default) for n, s in PX4.params.items()}
+    assert {n: px4_factory[n] for n in PX4_DEFAULTS} == PX4_DEFAULTS  # PX4 1.14 as shipped
+    assert not companion_loss(Autopilot.PX4, px4_factory, 255).hovers and not PX4.lab_params
