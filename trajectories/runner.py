@@ -30,7 +30,7 @@ from typing import Any
 from flightkit.clock import Clock
 from flightkit.errors import CommandRejected, LinkError, LinkTimeout, MocapError, PlanError, SafetyAbort
 from flightkit.frames import Vec3Tuple
-from flightkit.link.base import LandedState, VehicleLink
+from flightkit.link.base import LandedState, VehicleLink, read_companion_loss
 from flightkit.mocap.base import MocapSource
 from trajectories.base import Pattern, PiecewisePattern, Reference, Turn
 from trajectories.circle import Circle
@@ -213,12 +213,7 @@ class FlightRunner:
         firmware's traits name them), log that in one line and keep it in the summary; a reason
         not to arm when it would hover armed until the battery runs out, unless
         ``allow_hover_on_companion_loss``."""
-        traits, link = self.traits, self.link
-        values = await link.read_params(traits.failsafe_params)
-        older = [old for name, old in traits.failsafe_param_fallbacks.items() if name not in values]
-        if older:
-            values.update(await link.read_params(older))
-        verdict = traits.companion_loss(values, link.info.our_system_id)
+        verdict = await read_companion_loss(self.link)
         self.summary.companion_loss = verdict.summary
         if not verdict.hovers:
             logger.info("%s", verdict.summary)

@@ -46,6 +46,7 @@ __all__ = [
     "VelocitySetpoint",
     "firmware_traits",
     "offboard_mode_for",
+    "read_companion_loss",
 ]
 
 
@@ -426,3 +427,17 @@ class VehicleLink(Protocol, metaclass=_StaticProtocolMeta):
     async def __aexit__(
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None: ...
+
+
+async def read_companion_loss(link: VehicleLink) -> CompanionLoss:
+    """What the connected vehicle would do on its own if flightkit stopped: reads the failsafe
+    parameters its firmware's traits name (older names for those absent) and judges them.
+
+    Blocks up to about twice ``link.command_timeout_s`` when parameters do not answer.
+    """
+    traits = link.info.traits
+    values = await link.read_params(traits.failsafe_params)
+    older = [old for name, old in traits.failsafe_param_fallbacks.items() if name not in values]
+    if older:
+        values.update(await link.read_params(older))
+    return traits.companion_loss(values, link.info.our_system_id)

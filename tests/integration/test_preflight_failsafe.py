@@ -15,8 +15,10 @@ import pytest
 
 from flightkit.apps.sim_session import SimSession, sim_session
 from flightkit.cli.main import main
+from flightkit.clock import ONE_PROCESS_WALL_STEP_S, SimClock
 from flightkit.config import LabConfig, LinkBackend
 from flightkit.errors import SafetyAbort
+from flightkit.sim.lab import SimLab
 from trajectories.runner import FlightRunner
 from trajectories.supervisor import SafetyConfig
 
@@ -142,3 +144,13 @@ def test_flightkit_fly_refuses_factory_arducopter_and_the_flag_overrides(
     summary = json.loads(capsys.readouterr().out)
     assert summary["outcome"] == "completed"
     assert "hovers armed in GUIDED until the battery runs out (FS_GCS_ENABLE = 0)" in summary["companion_loss"]
+
+
+def test_vehicle_status_says_what_the_vehicle_does_if_flightkit_stops(capsys: pytest.CaptureFixture[str]) -> None:
+    clock = SimClock(1.0, max_wall_step_s=ONE_PROCESS_WALL_STEP_S)
+    url = "udpin:127.0.0.1:0"
+    with SimLab(lab(APM_FACTORY), autopilot="ardupilot", url=url, clock=clock, ready_after_s=0.0) as sim:
+        assert main(["vehicle", "status", "--connect", sim.client_url, "--listen", "0.5"]) == 0
+    line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("failsafe "))
+    assert "if flightkit stops: ArduCopter keeps the last velocity 3 s (GUID_TIMEOUT)" in line
+    assert line.endswith("(FS_GCS_ENABLE = 0) (fly refuses to arm)")
