@@ -110,11 +110,11 @@ class Personality:
         param_bytewise: int params are sent bytewise in the float (PX4), else C-cast (ArduPilot).
         firmware_version: (major, minor, patch) for AUTOPILOT_VERSION.
         ev_enable_param: parameter that turns external vision fusion on.
+        lab_params: what a lab set up as ``docs/hardware.md`` recommends changes from the
+            defaults (the simulated lab applies them; the bare autopilot serves the defaults).
         reject_result: MAV_RESULT sent when arming, a mode change or a take-off is refused
             (PX4 1 TEMPORARILY_REJECTED, ArduPilot 4 FAILED).
         ack_set_mode_message: answer the SET_MODE message with a COMMAND_ACK (ArduPilot does).
-        lab_params: what a lab set up as ``docs/hardware.md`` recommends changes from the
-            defaults (the simulated lab applies them; the bare autopilot serves the defaults).
     """
 
     autopilot: Autopilot
@@ -147,9 +147,9 @@ class Personality:
     firmware_version: tuple[int, int, int]
     ev_enable_param: str
     reject_result: int = 1
+    lab_params: Mapping[str, float] = field(default_factory=dict)
     ack_set_mode_message: bool = False
     vehicle_name: str = field(default="")
-    lab_params: Mapping[str, float] = field(default_factory=dict)
 
     def mode_of(self, custom_mode: int) -> FlightMode | None:
         """The flight mode a custom_mode number means, or None when it is not one of ours."""
@@ -317,9 +317,9 @@ ARDUPILOT = Personality(
     firmware_version=(4, 7, 0),
     ev_enable_param="VISO_TYPE",
     reject_result=4,
+    lab_params=MappingProxyType({"FS_GCS_ENABLE": 5.0}),  # land when flightkit's heartbeat stops
     ack_set_mode_message=True,
     vehicle_name="ArduCopter (simulated)",
-    lab_params=MappingProxyType({"FS_GCS_ENABLE": 5.0}),  # land when flightkit's heartbeat stops
 )
 
 
