@@ -130,24 +130,6 @@ class CommandChannel:
             lambda: LinkTimeout(f"no COMMAND_ACK for {cmd_name(command)}", "COMMAND_ACK", timeout_s),
         )
 
-    async def checked(self, command: int, params: tuple[float, ...], hint: str = "", **kw: Any) -> None:
-        """:meth:`command_long`, raising CommandRejected (with nearby STATUSTEXT) unless ACCEPTED."""
-        sent_at = self._clock.monotonic_s()
-        result = await self.command_long(command, params, **kw)
-        if result != MAV_RESULT_ACCEPTED:
-            raise await self.rejection(command, result, sent_at, hint)
-
-    async def rejection(self, command: int, result: int, sent_at: float, hint: str) -> CommandRejected:
-        """The CommandRejected for ``result``, with the STATUSTEXT sent around ``sent_at``
-        (waits briefly: texts often trail the ACK by a few ms)."""
-        await self._clock.sleep(_REJECT_TEXT_GRACE_S)
-        with self._state.lock:
-            texts = tuple(
-                t for when, _, t in self._state.statustext if when >= sent_at - _REJECT_TEXT_WINDOW_S
-            )
-        logger.info("%s refused: %s %s", cmd_name(command), result_name(result), "; ".join(texts))
-        return CommandRejected(cmd_name(command), result_name(result), texts, hint)
-
     async def read_params(self, names: Sequence[str], bytewise: bool, attempts: int = 2) -> dict[str, float]:
         """Read parameters with PARAM_REQUEST_READ (by name), re-asking for the missing ones
         ``attempts`` times within the command timeout; returns the values that arrived
@@ -186,6 +168,24 @@ class CommandChannel:
         if missing:
             logger.info("no PARAM_VALUE for %s after %.1f s", ", ".join(missing), self._timeout_s)
         return {n: decode_param_value(wire, ptype, bytewise) for n, (wire, ptype) in got.items()}
+
+    async def checked(self, command: int, params: tuple[float, ...], hint: str = "", **kw: Any) -> None:
+        """:meth:`command_long`, raising CommandRejected (with nearby STATUSTEXT) unless ACCEPTED."""
+        sent_at = self._clock.monotonic_s()
+        result = await self.command_long(command, params, **kw)
+        if result != MAV_RESULT_ACCEPTED:
+            raise await self.rejection(command, result, sent_at, hint)
+
+    async def rejection(self, command: int, result: int, sent_at: float, hint: str) -> CommandRejected:
+        """The CommandRejected for ``result``, with the STATUSTEXT sent around ``sent_at``
+        (waits briefly: texts often trail the ACK by a few ms)."""
+        await self._clock.sleep(_REJECT_TEXT_GRACE_S)
+        with self._state.lock:
+            texts = tuple(
+                t for when, _, t in self._state.statustext if when >= sent_at - _REJECT_TEXT_WINDOW_S
+            )
+        logger.info("%s refused: %s %s", cmd_name(command), result_name(result), "; ".join(texts))
+        return CommandRejected(cmd_name(command), result_name(result), texts, hint)
 
     async def request_telemetry(self) -> None:
         """Ask for the telemetry the link decodes and for AUTOPILOT_VERSION; failures are logged only."""

@@ -96,11 +96,11 @@ class VehicleState:
         )
         self.ack_seq = 0
         self.acks: dict[int, tuple[int, int, float]] = {}  # command -> (seq, result, time)
+        self.params: dict[str, tuple[float, int]] = {}  # PARAM_VALUE: name -> (wire value, MAV_PARAM_TYPE)
         self.rx = 0
         self.rx_rejected = 0
         self.rx_other_components = 0
         self.other_systems: set[int] = set()  # autopilots heard that are not the target
-        self.params: dict[str, tuple[float, int]] = {}  # PARAM_VALUE: name -> (wire value, MAV_PARAM_TYPE)
 
     def telemetry(self) -> Telemetry:
         """A snapshot of the latest state; returns immediately."""
