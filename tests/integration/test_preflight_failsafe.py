@@ -27,6 +27,11 @@ pytestmark = [pytest.mark.sitl, pytest.mark.timeout(60)]
 SPEED = 5.0
 APM_FACTORY = {"FS_GCS_ENABLE": 0.0}  # ArduCopter 4.7 as shipped (the lab set-up lands instead)
 PX4_HOVER = {"COM_OBL_RC_ACT": 5.0, "COM_RCL_EXCEPT": 2.0}  # Hold on offboard loss, RC loss ignored in Hold
+# the mocap-stream bounds are another check (test_fly_faults); off here, so a loaded machine's
+# stalls cannot refuse for a reason other than the one under test
+QUIET_MOCAP_CHECKS = SafetyConfig(
+    preflight_mocap_min_rate_hz=0.0, preflight_mocap_max_age_s=0.0, preflight_mocap_max_jitter_ms=0.0
+)
 
 
 def lab(params: dict[str, float], backend: str = "pymavlink") -> LabConfig:
@@ -45,7 +50,7 @@ async def preflight_and_arm(s: SimSession, allow: bool = False) -> str:
         s.mocap,
         body=s.config.mocap.body,
         clock=s.clock,
-        safety=SafetyConfig(allow_hover_on_companion_loss=allow),
+        safety=dataclasses.replace(QUIET_MOCAP_CHECKS, allow_hover_on_companion_loss=allow),
     )
     try:
         try:
@@ -133,7 +138,9 @@ def test_flightkit_fly_refuses_factory_arducopter_and_the_flag_overrides(
     plan = tmp_path / "hop.toml"
     plan.write_text(
         '[plan]\nname = "hop"\ntakeoff_height_m = 0.5\nhold_before_s = 0.0\nhold_after_s = 0.0\n\n'
-        '[pattern]\nkind = "hold"\nposition_m = [0.0, 0.0, 0.5]\nduration_s = 0.5\n'
+        '[pattern]\nkind = "hold"\nposition_m = [0.0, 0.0, 0.5]\nduration_s = 0.5\n\n'
+        "[safety]\npreflight_mocap_min_rate_hz = 0.0\npreflight_mocap_max_age_s = 0.0\n"
+        "preflight_mocap_max_jitter_ms = 0.0\n"
     )
     argv = ["fly", str(plan), "--sim", "--config", str(lab_toml), "--speed", "5", "--log", "", "--json"]
     assert main(argv) == 1
