@@ -114,6 +114,8 @@ class FlightSummary:
         stage_latency_ms: (p50, p99) per :data:`LATENCY_STAGES` stage with samples, and ``total``
             (capture stamp to setpoint).
         log_path: the flight log file (None when not logging).
+        companion_loss: what the autopilot would have done had flightkit stopped (the preflight's
+            one line, from its failsafe parameters; empty when not checked).
     """
 
     plan: str
@@ -131,6 +133,7 @@ class FlightSummary:
     latency_p99_ms: float = math.nan
     stage_latency_ms: dict[str, tuple[float, float]] = field(default_factory=dict)
     log_path: str | None = None
+    companion_loss: str = ""
 
     def phase(self, name: str) -> PhaseStats:
         """The stats of phase ``name`` (KeyError if it was not flown)."""
@@ -160,6 +163,7 @@ class FlightSummary:
             "phases": [p.to_dict() for p in self.phases],
             "faults": [f.to_dict() for f in self.faults],
             "log_path": self.log_path,
+            "companion_loss": self.companion_loss,
         }
 
     def to_json(self) -> str:
@@ -189,6 +193,8 @@ class FlightSummary:
             lines.extend(f"    t={f.time_s:7.2f} s  {f.kind.value:<18} {f.message}" for f in self.faults)
         else:
             lines.append("  faults: none")
+        if self.companion_loss:
+            lines.append(f"  {self.companion_loss}")
         if self.log_path:
             lines.append(f"  log: {self.log_path}")
         return "\n".join(lines)

@@ -30,7 +30,7 @@ from typing import Any
 from flightkit.clock import Clock
 from flightkit.errors import CommandRejected, LinkError, LinkTimeout, MocapError, PlanError, SafetyAbort
 from flightkit.frames import Vec3Tuple
-from flightkit.link.base import LandedState, VehicleLink
+from flightkit.link.base import LandedState, VehicleLink, read_companion_loss
 from flightkit.mocap.base import MocapSource
 from trajectories.base import Pattern, PiecewisePattern, Reference, Turn
 from trajectories.circle import Circle
@@ -206,9 +206,29 @@ class FlightRunner:
             self.safety, loop.body, tuple(loop.mocap.bodies()), pos is not None, self.link.telemetry, pos
         )
         problems += stream
+        problems += await self._companion_loss_problems()
         if problems:
             raise SafetyAbort("preflight", "preflight failed: " + "; ".join(problems))
         logger.info("preflight ok: body %r at %s", loop.body, pos)
+
+    async def _companion_loss_problems(self) -> list[str]:
+        """Read the parameters that decide what the autopilot does if flightkit stops (the
+        firmware's traits name them), log that in one line and keep it in the summary; a reason
+        not to arm when it would hover armed until the battery runs out, unless
+        ``allow_hover_on_companion_loss``."""
+        verdict = await read_companion_loss(self.link)
+        self.summary.companion_loss = verdict.summary
+        if not verdict.hovers:
+            logger.info("%s", verdict.summary)
+            return []
+        if self.safety.allow_hover_on_companion_loss:
+            logger.warning("%s; arming anyway ([safety] allow_hover_on_companion_loss)", verdict.summary)
+            return []
+        logger.warning("%s", verdict.summary)
+        return [
+            f"{verdict.reason}; or accept it with [safety] allow_hover_on_companion_loss = true "
+            "(flightkit fly --allow-hover-on-companion-loss)"
+        ]
 
     async def _watch_mocap_stream(self) -> list[str]:
         """Watch the body's poses for ``preflight_mocap_window_s``: what breaks the rate, age and
