@@ -494,17 +494,23 @@ def test_ardupilot_guided_needs_position_then_timeout_brake(
     assert c.command(mav.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 2.0) == mav.MAV_RESULT_ACCEPTED
     _wait_local(c, lambda m: m.z < -1.95, timeout_s=10.0)
     lab.wait_until(lambda: abs(lab.truth().vel_enu_m_s[2]) < 0.05, timeout_s=5.0, what="hover")
-    # 1 m/s north, sent for 1 s: it keeps going for GUID_TIMEOUT (3 s) after the last command, then brakes
-    start = _local(c)
-    for _ in range(10):
+    # ArduCopter's measured run (issue 19): 1 m/s north held 3 s moved 2.32 m (its position
+    # controller's acceleration and jerk limits), and the vehicle kept moving 3.6 s after the last
+    # command (GUID_TIMEOUT 3 s, then it braked); bands of about +-15 % around those figures
+    start_n_m = lab.truth().pos_enu_m[1]
+    t_first = lab.clock.monotonic_s()
+    for _ in range(30):
         c.send_setpoint(mav.MAV_FRAME_LOCAL_NED, VEL_ONLY, _vel(1.0, 0.0, 0.0))
         lab.clock.sleep_blocking(0.1)
     t_last = c.last_sent_s
+    # distance lost to the acceleration against 1 m/s held from the first command (real: 3 - 2.32 m)
+    lag_m = (t_last - t_first) * 1.0 - (lab.truth().pos_enu_m[1] - start_n_m)
+    assert 0.47 <= lag_m <= 0.89, lag_m  # 0.68 m +-30 %
     c.recv("STATUSTEXT", lambda m: "timeout" in m.text, timeout_s=10.0)
-    assert 2.8 <= _event_s(lab, "failsafe", "command timeout") - t_last <= 3.4
-    stop = _wait_local(c, lambda m: math.hypot(m.vx, m.vy) < 0.05, timeout_s=10.0)
-    moved = stop.x - start.x
-    assert 3.3 <= moved <= 4.6, moved  # ~4 s at 1 m/s, minus the acceleration lag, plus braking
+    t_brake = _event_s(lab, "failsafe", "command timeout")
+    assert 2.8 <= t_brake - t_last <= 3.4
+    lab.wait_until(lambda: math.hypot(*lab.truth().vel_enu_m_s[:2]) < 0.1, timeout_s=10.0, what="stopped")
+    assert 3.1 <= lab.clock.monotonic_s() - t_last <= 4.2
     assert lab.autopilot.mode.value == "GUIDED"
 
 
