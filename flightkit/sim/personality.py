@@ -116,6 +116,8 @@ class Personality:
         ack_set_mode_message: answer the SET_MODE message with a COMMAND_ACK (ArduPilot does).
         posctl_limits: the firmware's position-controller limits from its parameters; None =
             velocity setpoints reach the vehicle unshaped (PX4 offboard velocity control).
+        takeoff_climb_max_m_s: the take-off's climb-speed cap over the firmware's climb parameter
+            (ArduCopter: 0.5 m/s, fitted to the measured 0.41 m top of its 0.3 m lift).
         accel_time_constant_s: lag of the achieved acceleration behind the commanded one
             (ArduCopter: its attitude input shaping, ATC_INPUT_TC 0.15 s).
         takeoff_spool_s: after a take-off command, the vehicle stays on the ground this long
@@ -159,6 +161,7 @@ class Personality:
     posctl_limits: Callable[[Mapping[str, float]], PosCtlLimits] | None = None
     takeoff_spool_s: float = 0.0
     accel_time_constant_s: float = 0.0
+    takeoff_climb_max_m_s: float = math.inf
     battery_endurance_s: float = 1200.0
 
     def mode_of(self, custom_mode: int) -> FlightMode | None:
@@ -330,6 +333,7 @@ ARDUPILOT = Personality(
     posctl_limits=PosCtlLimits.from_ardupilot_params,
     takeoff_spool_s=2.5,
     accel_time_constant_s=0.15,
+    takeoff_climb_max_m_s=0.5,
     battery_endurance_s=450.0,
 )
 

@@ -41,6 +41,64 @@ MAVSDK_SPEED = 2.0  # the MAVSDK backend times its stream on the clock but MAVSD
 RMS_BOUND_M = 0.03
 MAX_BOUND_M = 0.12
 
+# The simulated ArduCopter lags a velocity stream as the firmware does (its position controller's
+# acceleration and jerk limits, docs/sim.md). Real ArduCopter 4.7 SITL flying the example plans
+# (issue 19): take-off RMS 60-70 mm / max 109-131 mm, goto 66-69 / 111-125 mm, patterns RMS
+# 13-15 mm, max after the first 2 s 23-46 mm, landing 51-52 mm, lift-off 2.8 s after the take-off
+# command, its 0.3 m lift topping out at 0.41 m. The shortened rectangle and lawnmower fly their
+# sides 2.5x faster than the real run, and lag errors grow with speed: their bounds are the real
+# figures scaled by 2.5 with the same margin.
+ARDUPILOT_RMS_BOUND_M = {"circle": 0.03, "rectangle": 0.05, "lawnmower": 0.05}
+ARDUPILOT_MAX_BOUND_M = {"circle": 0.12, "rectangle": 0.16, "lawnmower": 0.16}
+
+
+def rms_bound(name: str, autopilot: str) -> float:
+    return ARDUPILOT_RMS_BOUND_M[name] if autopilot == "ardupilot" else RMS_BOUND_M
+
+
+def max_bound(name: str, autopilot: str) -> float:
+    return ARDUPILOT_MAX_BOUND_M[name] if autopilot == "ardupilot" else MAX_BOUND_M
+
+
+def liftoff_s_and_top_m(log_path: str) -> tuple[float, float]:
+    """From the flight log: seconds from the take-off phase's start until the vehicle is 2 cm up,
+    and its height where it led the climb reference most (the top of the autopilot's own lift,
+    which the runner's climb then catches up with)."""
+    log = read_flight_log(log_path)
+    sel = log["phase"] == "takeoff"
+    t, z, ref_z = (np.asarray(log[k][sel]) for k in ("t_s", "pos_z_m", "ref_z_m"))
+    up = np.flatnonzero(z > z[0] + 0.02)
+    assert len(up), "the vehicle never left the ground in the take-off phase"
+    return float(t[up[0]] - t[0]), float(z[np.argmax(z - ref_z)] - z[0])
+
+
+def assert_like_arducopter(summary: FlightSummary, with_pattern: bool) -> None:
+    """The flight's figures within bands around the real ArduCopter's (issue 19's table).
+
+    Bands are the real range widened by 30 % (the issue's target) where the simulator meets it
+    (lift-off time and top, take-off and goto max, the circle). Where it tracks tighter than the
+    firmware (docs/sim.md, "Fidelity"), the band runs from the firmware's figure + 30 % down to a
+    floor the old lag-free simulator stayed below: the take-off RMS (sim 22-65 mm, real 60-70; the
+    firmware's steady 9 cm lead on the climb is not modelled), the goto RMS on a loaded host
+    (sim 37-61 mm, real 66-69) and the landing (sim 15-25 mm, real 51-52).
+    """
+    table = summary.format_table()
+    liftoff_s, top_m = liftoff_s_and_top_m(summary.log_path or "")
+    assert 2.0 <= liftoff_s <= 3.6, (liftoff_s, table)  # real 2.8 s
+    assert 0.29 <= top_m <= 0.53, (top_m, table)  # real 0.41 m
+    takeoff, goto, land = summary.phase("takeoff"), summary.phase("goto"), summary.phase("land")
+    assert 0.018 <= takeoff.rms_error_m <= 0.091, table  # real 60-70 mm; lag-free sim 12-17
+    assert 0.076 <= takeoff.max_error_m <= 0.17, table  # real 109-131 mm; lag-free sim 33-40
+    assert 0.032 <= goto.rms_error_m <= 0.090, table  # real 66-69 mm; lag-free sim 27-28
+    assert 0.078 <= goto.max_error_m <= 0.163, table  # real 111-125 mm; lag-free sim 50-52
+    assert 0.008 <= land.rms_error_m <= 0.068, table  # real 51-52 mm
+    if with_pattern:
+        pat = summary.phase("pattern")
+        assert 0.009 <= pat.rms_error_m <= 0.026, table  # real 15 mm (circle)
+        r = pattern_rows(summary.log_path or "")
+        late = r["err_m"][settled(r["t_s"]) & (r["t_s"] > r["t_s"][0] + 2.0)]
+        assert 0.010 <= float(np.max(late)) <= 0.045, table  # real 23 mm (circle)
+
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(240)]
 
 
@@ -108,12 +166,15 @@ def test_circle_tracks_within_bounds_and_looks_inward(autopilot: str, tmp_path: 
     assert 38.0 < pat.duration_s < 45.0  # one 40 s lap (pattern time stands still only while holding)
     assert pat.rms_error_m < RMS_BOUND_M, summary.format_table()
     assert pat.max_error_m < MAX_BOUND_M, summary.format_table()
-    assert summary.phase("takeoff").max_error_m < MAX_BOUND_M
-    # Every phase tracks within the pattern's bounds, the landing included (against the
-    # floor-clamped reference): its descent keeps headroom below the vertical speed limit.
-    for phase in ("takeoff", "goto", "land"):
-        assert summary.phase(phase).rms_error_m < RMS_BOUND_M, summary.format_table()
-        assert summary.phase(phase).max_error_m < MAX_BOUND_M, summary.format_table()
+    if autopilot == "ardupilot":
+        # one lap of the real plan: every phase against the real firmware's figures
+        assert_like_arducopter(summary, with_pattern=True)
+    else:
+        # Every phase tracks within the pattern's bounds, the landing included (against the
+        # floor-clamped reference): its descent keeps headroom below the vertical speed limit.
+        for phase in ("takeoff", "goto", "land"):
+            assert summary.phase(phase).rms_error_m < RMS_BOUND_M, summary.format_table()
+            assert summary.phase(phase).max_error_m < MAX_BOUND_M, summary.format_table()
 
     # the flown path, from the log: a 1 m circle at 1.5 m, all the way round, facing the centre
     r = pattern_rows(summary.log_path or "")
@@ -134,8 +195,10 @@ def test_rectangle_flies_its_corners_with_turns_in_place(autopilot: str, tmp_pat
     summary = asyncio.run(fly("rectangle", autopilot, "pymavlink", SPEED, tmp_path))
     assert_clean(summary)
     pat = summary.phase("pattern")
-    assert pat.rms_error_m < RMS_BOUND_M, summary.format_table()
-    assert pat.max_error_m < MAX_BOUND_M, summary.format_table()
+    assert pat.rms_error_m < rms_bound("rectangle", autopilot), summary.format_table()
+    assert pat.max_error_m < max_bound("rectangle", autopilot), summary.format_table()
+    if autopilot == "ardupilot":
+        assert_like_arducopter(summary, with_pattern=False)
 
     r = pattern_rows(summary.log_path or "")
     x, y = r["pos_x_m"], r["pos_y_m"]
@@ -162,8 +225,10 @@ def test_lawnmower_covers_its_lanes(autopilot: str, tmp_path: Path) -> None:
     summary = asyncio.run(fly("lawnmower", autopilot, "pymavlink", SPEED, tmp_path))
     assert_clean(summary)
     pat = summary.phase("pattern")
-    assert pat.rms_error_m < RMS_BOUND_M, summary.format_table()
-    assert pat.max_error_m < MAX_BOUND_M, summary.format_table()
+    assert pat.rms_error_m < rms_bound("lawnmower", autopilot), summary.format_table()
+    assert pat.max_error_m < max_bound("lawnmower", autopilot), summary.format_table()
+    if autopilot == "ardupilot":
+        assert_like_arducopter(summary, with_pattern=False)
 
     r = pattern_rows(summary.log_path or "")
     x, y = r["pos_x_m"], r["pos_y_m"]

@@ -210,7 +210,8 @@ class _AutopilotFlight(_AutopilotCore):
         if limits is None:
             return max(0.3, min(climb_m_s, 1.5 * remaining_m))
         accel_z = limits(self._params).accel_z_m_s2
-        return min(climb_m_s, math.sqrt(2.0 * accel_z * max(remaining_m, 0.0)))
+        cap = min(climb_m_s, self.personality.takeoff_climb_max_m_s)
+        return min(cap, math.sqrt(2.0 * accel_z * max(remaining_m, 0.0)))
 
     def _position_controller(
         self,
