@@ -89,7 +89,8 @@ class DynamicsParams:
         ):
             if not getattr(self, name) > 0.0:
                 raise SimError(f"DynamicsParams.{name} must be > 0, got {getattr(self, name)}; give a positive value")
-        for name in ("accel_time_constant_s", "spinup_s", "thrust_ramp_s", "wind_gust_m_s", "pos_noise_m", "pos_wander_m", "drag_1_s"):
+        nonneg = ("accel_time_constant_s", "spinup_s", "thrust_ramp_s", "wind_gust_m_s", "pos_noise_m", "pos_wander_m")
+        for name in (*nonneg, "drag_1_s"):
             if getattr(self, name) < 0.0:
                 raise SimError(f"DynamicsParams.{name} must be >= 0, got {getattr(self, name)}; give 0 (off) or more")
 
