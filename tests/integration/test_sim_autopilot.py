@@ -517,6 +517,39 @@ def test_ardupilot_guided_needs_position_then_timeout_brake(
     assert lab.autopilot.mode.value == "GUIDED"
 
 
+def test_ardupilot_follows_a_position_velocity_acceleration_target(
+    make_lab: Callable[..., SimLab], clients: list[Client]
+) -> None:
+    """A kinematic target (type_mask 1024: position, velocity and acceleration) is flown without
+    the velocity shaping's lag, advances with its velocity between messages and, after
+    GUID_TIMEOUT without a new one, stops where it had got to (ArduCopter's guided mode)."""
+    lab = make_lab("ardupilot")
+    c = _client(clients, lab)
+    assert c.set_mode(4) == mav.MAV_RESULT_ACCEPTED
+    assert c.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mav.MAV_RESULT_ACCEPTED
+    assert c.command(mav.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 1.0) == mav.MAV_RESULT_ACCEPTED
+    _wait_local(c, lambda m: m.z < -0.95, timeout_s=10.0)
+    lab.wait_until(lambda: math.hypot(*lab.truth().vel_enu_m_s) < 0.05, timeout_s=10.0, what="hover")
+    here = lab.autopilot.estimate_local_enu_m()
+    # one message: from here (north, east, down), moving north at 0.3 m/s, no acceleration
+    c.conn.mav.set_position_target_local_ned_send(
+        0, 1, 1, mav.MAV_FRAME_LOCAL_NED, 1024, here[1], here[0], -here[2], 0.3, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    )
+    t_sent = lab.clock.monotonic_s()
+    lab.wait_until(lambda: lab.clock.monotonic_s() > t_sent + 1.5, timeout_s=10.0, what="1.5 s")
+    state, t_now = lab.autopilot.truth_stamped()
+    # on the target's track within centimetres (velocity-only would trail by ~0.15 m here)
+    assert state.pos_enu_m[1] - here[1] == pytest.approx(0.3 * (t_now - t_sent), abs=0.05)
+    lab.wait_until(
+        lambda: lab.clock.monotonic_s() > t_sent + 6.0 and math.hypot(*lab.truth().vel_enu_m_s) < 0.02,
+        timeout_s=20.0,
+        what="stopped",
+    )
+    # GUID_TIMEOUT 3 s at 0.3 m/s: the target stopped 0.9 m north
+    assert lab.truth().pos_enu_m[1] - here[1] == pytest.approx(0.9, abs=0.05)
+    assert lab.autopilot.mode.value == "GUIDED"
+
+
 def test_ardupilot_body_frame_and_land_disarms(make_lab: Callable[..., SimLab], clients: list[Client]) -> None:
     lab = make_lab("ardupilot", start_yaw_rad=0.0)  # facing world +x = east
     c = _client(clients, lab)
