@@ -90,22 +90,25 @@ class ControllerConfig:
     def _check(obj: ControllerConfig, path: str, key: str) -> None:
         from flightkit.errors import ConfigError
 
-        if obj.setpoint is SetpointKind.PVA and obj.output_frame is OutputFrame.BODY:
-            raise ConfigError(
-                path,
-                f"{key}.setpoint" if key else "setpoint",
+        if obj.output_frame is not OutputFrame.BODY:
+            return
+        # settings that need the autopilot's local frame: (name, in use, why not in the body frame, what to do)
+        for name, used, why, fix in (
+            (
+                "setpoint",
+                obj.setpoint is SetpointKind.PVA,
                 "position targets are in the autopilot's local frame, which the body frame is not",
                 "use setpoint = 'velocity', or output_frame = 'local_ned' when the autopilot fuses mocap",
-                obj.setpoint.value,
-            )
-        if obj.yaw_control is YawControl.SETPOINT and obj.output_frame is OutputFrame.BODY:
-            raise ConfigError(
-                path,
-                f"{key}.yaw_control" if key else "yaw_control",
+            ),
+            (
+                "yaw_control",
+                obj.yaw_control is YawControl.SETPOINT,
                 "an absolute yaw setpoint is meaningless in the body frame",
                 "use yaw_control = 'rate', or output_frame = 'local_ned' when the autopilot fuses mocap",
-                obj.yaw_control.value,
-            )
+            ),
+        ):
+            if used:
+                raise ConfigError(path, f"{key}.{name}" if key else name, why, fix, getattr(obj, name).value)
 
 
 @dataclass(frozen=True, slots=True)
