@@ -253,13 +253,19 @@ def test_pva_targets_track_tighter_on_the_simulated_ardupilot(tmp_path: Path) ->
     summary = asyncio.run(fly("circle", "ardupilot", "pymavlink", SPEED, tmp_path, with_pva(shortened("circle"))))
     assert_clean(summary)
     table = summary.format_table()
-    assert summary.phase("pattern").rms_error_m < 0.008, table
+    # Judged on the cycles the loop ran on time: right after a host stall the pose is up to 0.2 s
+    # old against a moving reference (on the loaded 2-core host one such row alone has read 29 mm
+    # on a circle tracked within ~2 mm), which is no tracking error.
+    log = read_flight_log(summary.log_path or "")
+    for phase, bound_m in (("takeoff", 0.03), ("goto", 0.03), ("pattern", 0.008)):
+        sel = (log["phase"] == phase) & (log["action"] == "CONTINUE")
+        t, err = np.asarray(log["t_s"][sel]), np.asarray(log["err_m"][sel])
+        ok = settled(t)
+        assert np.count_nonzero(ok) > 0.5 * len(ok), (phase, table)
+        assert float(np.sqrt(np.mean(err[ok] ** 2))) < bound_m, (phase, table)
     r = pattern_rows(summary.log_path or "")
-    # after the first 2 s, and not right after a host stall (a stale pose is no tracking error)
     late = r["err_m"][settled(r["t_s"]) & (r["t_s"] > r["t_s"][0] + 2.0)]
     assert float(np.max(late)) < 0.03, table
-    assert summary.phase("takeoff").rms_error_m < 0.03, table
-    assert summary.phase("goto").rms_error_m < 0.03, table
 
 
 def shortened_for_mavsdk(name: str) -> Plan:
