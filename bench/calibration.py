@@ -12,10 +12,15 @@ about three axes, ``flightkit.sim.calibration_flight``):
    predicted forward by ``latency`` at constant velocity, against the true pose now.
 5. ``--vo``: the camera's motion from real VO (rgbd-pnp on rendered 320x240 frames) instead of
    the true motion plus noise, end to end.
+6. **Latency compensation in flight** (``--flight``): the simulated lab flies the circle with
+   0, 20 and 50 ms of mocap latency injected, without and with the runner's prediction
+   (``[mocap] predict_latency_ms`` = the latency), side by side in one run: the *true* tracking
+   error (the lab's ground truth against the reference, pattern phase) and the latency stages.
 
     .venv/bin/python bench/calibration.py            # parts 1-4 (~3 min on 2 shared cores)
     .venv/bin/python bench/calibration.py --quick    # circle only, fewer cases (~1 min)
     .venv/bin/python bench/calibration.py --vo       # and part 5 (~1-2 min more)
+    .venv/bin/python bench/calibration.py --flight-only   # part 6 alone (~2 min at the default --speed 3)
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ import math
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -201,12 +207,89 @@ def part_vo(duration_s: float) -> None:
             f"{he.residual_deg:.3f}", f"{t_vo:.1f}", f"{t_cal:.2f}"]])
 
 
+def _fly_circle(latency_ms: float, predict_ms: float, speed: float, period_s: float, log: Path) -> dict[str, float]:
+    """One simulated circle flight; the true RMS/max tracking error of the pattern phase and the latency stages."""
+    import asyncio
+    import dataclasses
+
+    from flightkit.apps.sim_session import SimSession, fly_plan_in_sim
+    from flightkit.config import load_config
+    from trajectories.flightlog import read_flight_log
+    from trajectories.plan import load_plan
+
+    root = Path(__file__).resolve().parents[1]
+    plan = load_plan(root / "examples" / "circle.toml")
+    plan = plan.with_changes(
+        settings=dataclasses.replace(plan.settings, hold_before_s=1.0, hold_after_s=0.5, landed_timeout_s=60.0),
+        pattern=dataclasses.replace(plan.pattern, laps=1, period_s=period_s),
+    )
+    cfg = load_config(table={"sim": {"mocap_latency_ms": latency_ms, "speed": speed},
+                             "mocap": {"predict_latency_ms": predict_ms}})
+    truth: list[tuple[int, tuple[float, float, float]]] = []
+
+    async def sample(s: SimSession) -> None:  # the lab's ground truth on the clock's time_ns
+        while True:
+            t = s.lab.T_world_body().translation
+            truth.append((s.clock.time_ns(), (float(t[0]), float(t[1]), float(t[2]))))
+            await s.clock.sleep(0.02)
+
+    async def go() -> Any:
+        tasks: list[asyncio.Task[None]] = []
+        try:
+            return await fly_plan_in_sim(plan, cfg, log_path=log,
+                                         on_session=lambda s: tasks.append(asyncio.ensure_future(sample(s))))
+        finally:
+            for t in tasks:
+                t.cancel()
+
+    summary = asyncio.run(go())
+    data = read_flight_log(log)
+    on = np.array([ph == "pattern" for ph in data["phase"]])
+    stamps = np.array([t for t, _ in truth], dtype=np.float64)
+    pos = np.array([p for _, p in truth])
+    at = data["stamp_ns"][on]
+    true_now = np.stack([np.interp(at, stamps, pos[:, k]) for k in range(3)], axis=1)
+    ref = np.stack([data[f"ref_{a}_m"][on] for a in "xyz"], axis=1)
+    err = np.linalg.norm(true_now - ref, axis=1)
+    stages = summary.stage_latency_ms
+    return {"rms_mm": float(np.sqrt(np.mean(err**2)) * 1e3), "max_mm": float(err.max() * 1e3),
+            "seen_rms_mm": summary.phase("pattern").rms_error_m * 1e3,
+            "capture_bus_ms": stages.get("capture->bus", (math.nan, math.nan))[0],
+            "total_p99_ms": stages.get("capture->setpoint", (math.nan, math.nan))[1],
+            "outcome": 1.0 if summary.outcome == "completed" else 0.0}
+
+
+def part_flight(speed: float, period_s: float) -> None:
+    import tempfile
+
+    rows: list[list[str]] = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for lat in (0.0, 20.0, 50.0):
+            for pred in (0.0, lat) if lat else (0.0,):
+                t0 = time.perf_counter()
+                r = _fly_circle(lat, pred, speed, period_s, Path(tmp) / f"fly_{lat:.0f}_{pred:.0f}.csv")
+                rows.append([f"{lat:.0f}", "on" if pred else "off", f"{r['rms_mm']:.1f}", f"{r['max_mm']:.1f}",
+                             f"{r['seen_rms_mm']:.1f}", f"{r['capture_bus_ms']:.1f}", f"{r['total_p99_ms']:.1f}",
+                             "completed" if r["outcome"] else "NOT completed", f"{time.perf_counter() - t0:.0f}"])
+    print(f"### Latency compensation in flight (simulated lab, circle r 1 m, {period_s:g} s lap, "
+          f"sim speed {speed:g}; true error = ground truth vs reference)\n")
+    table(["latency ms", "prediction", "true RMS mm", "true max mm", "runner's RMS mm", "capture->bus p50 ms",
+           "capture->setpoint p99 ms", "outcome", "wall s"], rows)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description="calibration benchmark on simulated flights with exact answers")
     ap.add_argument("--quick", action="store_true", help="circle only, fewer cases")
     ap.add_argument("--vo", action="store_true", help="also run the end-to-end VO case")
     ap.add_argument("--duration", type=float, default=60.0, help="flight length, s (default 60)")
+    ap.add_argument("--flight", action="store_true", help="also run part 6 (latency compensation in flight)")
+    ap.add_argument("--flight-only", action="store_true", help="run part 6 only")
+    ap.add_argument("--speed", type=float, default=3.0, help="sim speed of part 6 (default 3)")
+    ap.add_argument("--period", type=float, default=15.0, help="circle lap time of part 6, s (default 15)")
     args = ap.parse_args()
+    if args.flight_only:
+        part_flight(args.speed, args.period)
+        return
     patterns = ["circle"] if args.quick else sorted(PATTERNS)
     timings = TIMING[1:2] if args.quick else TIMING
     part_time_and_hand_eye(patterns, NOISE, timings, args.duration)
@@ -215,6 +298,8 @@ def main() -> None:
     part_latency()
     if args.vo:
         part_vo(min(args.duration, 30.0))
+    if args.flight:
+        part_flight(args.speed, args.period)
 
 
 if __name__ == "__main__":

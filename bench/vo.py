@@ -58,7 +58,7 @@ from bench._synthetic import SYNTHETIC, prerendered  # noqa: E402
 from estimation.baselines import run_plain  # noqa: E402
 from estimation.evaluation import Alignment, ape, lab_errors, rpe  # noqa: E402
 from estimation.lab_sift import run_baseline  # noqa: E402
-from estimation.pipeline import Method, Quality, VoOptions, VoResult, run_vo, warm_up  # noqa: E402
+from estimation.pipeline import FlowOptions, Method, Quality, VoOptions, VoResult, run_vo, warm_up  # noqa: E402
 from flightkit.datasets.registry import open_sequence  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -66,13 +66,21 @@ DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 RGBD = ["rgbd-pnp", "rgbd-essential", "rgbd-kabsch", "flow"]
 SEQUENCES: dict[str, tuple[str, list[str], str]] = {
     # key: (folder, flightkit methods, plain baseline)
-    "kitti06": ("kitti06_stereo", ["stereo", "flow"], "plain-stereo"),
+    "kitti06": ("kitti06_stereo", ["stereo", "stereo@offset", "flow"], "plain-stereo"),
     "tum_rpy": ("tum_fr1rpy_000_199", RGBD, "plain-rgbd"),
     "7scenes": ("sevenscenes_tsdf50", RGBD, "plain-rgbd"),
     "tum_case1": ("tum_fr1xyz_pairs/case_1", RGBD, "plain-rgbd"),
     "tum_case2": ("tum_fr1xyz_pairs/case_2", RGBD, "plain-rgbd"),
-    "euroc_static": ("euroc_v101_static", ["stereo", "flow@stereo"], "plain-stereo"),
+    "euroc_static": ("euroc_v101_static", ["stereo", "stereo@offset", "flow@stereo"], "plain-stereo"),
 }
+
+
+VARIANTS: dict[str, VoOptions] = {
+    "": VoOptions(),
+    "stereo": VoOptions(estimator=FlowOptions(depth="stereo")),  # flow with per-point stereo depth
+    "offset": VoOptions(stereo_offset=True),  # stereo with the disparity offset estimated online
+}
+"""Row-name suffixes (``method@variant``) and their options."""
 
 
 def metrics(res: VoResult, gt: Any) -> dict[str, float]:
@@ -176,9 +184,9 @@ def main() -> int:
             plan: list[tuple[str, str, Any]] = []  # (row name, what to run, method or options)
             for name in methods:
                 m, _, variant = name.partition("@")
-                opts = VoOptions(flow_depth="stereo") if variant == "stereo" else VoOptions()
+                opts = VARIANTS[variant]
                 plan.append((name, m, opts))
-                if args.ba and Method(m) is not Method.FLOW:
+                if args.ba and Method(m) is not Method.FLOW and not variant:
                     plan.append((f"{m}+ba{args.ba}", m, replace(opts, ba_window=args.ba)))
             plan += [(b, b, None) for b in plain]
             if not args.no_sift:

@@ -9,7 +9,10 @@
 
 Payloads are written as they arrived (CDR bytes, never decoded and re-encoded); each
 stream becomes an MCAP channel with its ros2msg schema (:func:`flightkit.bus.msgs.schema_text`)
-and QoS metadata (images best effort, everything else reliable). The recording carries
+and QoS metadata (images best effort, everything else reliable). Each message keeps three times:
+its header stamp (the capture time, as the device gave it or not: the channel's
+``flightkit.capture_stamp`` says), MCAP ``publish_time`` (when it was put on the bus) and
+``log_time`` (when the recorder received it). The recording carries
 metadata records: ``flightkit`` (version, host), ``config`` (the lab config), ``extrinsics``
 (``T_body_camera``, ``T_world_mocap``), and ``calibration.<camera>`` for every camera whose
 camera_info was seen on the bus.
@@ -36,11 +39,14 @@ import zenoh
 
 from capture.config import CaptureConfig
 from capture.recorder import Compression, Recorder, RecordingReport, StreamSample, StreamStats
+from flightkit.bus.clock_exchange import ClockWatch, bus_host_name
 from flightkit.bus.keys import Keys
 from flightkit.bus.msgs import CameraInfo, schema_text
 from flightkit.bus.pubsub import BusSample, BusSubscriber
 from flightkit.bus.session import open_session
 from flightkit.bus.streams import is_best_effort
+from flightkit.calibration.clock_sync import CLOCK_OFFSETS_RECORD
+from flightkit.clock import WallClock
 from flightkit.config import BusConfig, LabConfig
 from flightkit.datasets.mcap_reader import transform_to_json
 from flightkit.errors import BusError, CaptureError
@@ -126,6 +132,9 @@ class BusRecorder:
         chunk_max_age_s, queue_limit_bytes, on_flush: as for :class:`~capture.recorder.Recorder`.
         metadata: extra metadata records.
         time_ns: receive-time source for MCAP ``log_time`` (default: wall clock).
+        clock_watch: a :class:`~flightkit.bus.clock_exchange.ClockWatch` on this recorder's clock:
+            started with the recording, and its offsets of every other host's clock are written
+            into the file when it stops (record ``clock_offsets``), so the hosts share one time base.
 
     Raises:
         CaptureError: the output exists (without ``allow_overwrite``) or cannot be created.
@@ -148,6 +157,7 @@ class BusRecorder:
         queue_limit_bytes: int = 1 << 30,
         on_flush: Callable[[list[int]], None] | None = None,
         time_ns: Callable[[], int] = time.time_ns,
+        clock_watch: ClockWatch | None = None,
     ) -> None:
         if not topics:
             raise CaptureError("no topics to record; give key expressions such as 'uav1/**'")
@@ -175,9 +185,12 @@ class BusRecorder:
         self.started_ns = time_ns()
         self.unknown_types: set[str] = set()
         self._subs: list[BusSubscriber] = []
+        self.clock_watch = clock_watch
         try:
             for t in self.topics:
                 self._subs.append(BusSubscriber(session, t, callback=self._on_sample))
+            if clock_watch is not None:
+                clock_watch.start()
         except BusError:
             self.stop()
             raise
@@ -205,9 +218,10 @@ class BusRecorder:
                 s.msgtype,
                 s.payload,
                 max(s.seq, 0),
-                s.stamp_ns or now,
+                s.bus_ns or s.stamp_ns or now,
                 now,
                 reliable=not is_best_effort(s.msgtype),
+                stamp_source=s.stamp_source,
             )
         )
         if s.msgtype == CameraInfo.TYPE and s.key not in self._seen_info:
@@ -271,6 +285,12 @@ class BusRecorder:
         for sub in self._subs:
             sub.close()
         self._subs = []
+        watch, self.clock_watch = self.clock_watch, None
+        if watch is not None:
+            watch.stop()
+            offsets = watch.to_metadata()
+            self.recorder.add_metadata(CLOCK_OFFSETS_RECORD, offsets)
+            logger.info("clock offsets of %d other host(s) recorded", len(offsets) - 1)
         return self.recorder.close(timeout_s)
 
     def __enter__(self) -> Self:
@@ -304,6 +324,7 @@ def start_recording(
     lab_cfg: LabConfig | None = None,
     compression: str | None = None,
     allow_overwrite: bool = False,
+    clock_host: str | None = "",
     **options: Any,
 ) -> BusRecorder:
     """Start recording in the background; call ``.stop()`` on the result to finish the file.
@@ -316,6 +337,9 @@ def start_recording(
             the lab (its ``[[vehicles]]``).
         lab_cfg: the lab config (namespace, metadata, ``[capture]`` defaults).
         compression: ``zstd``, ``lz4`` or ``none`` (default from ``[capture]``).
+        clock_host: this host's name in the clock exchange (``""``: from the host name; None: no
+            exchange): the recorder serves its clock on ``<ns>/clock/<host>`` and records the
+            offsets of every other host's clock (see :class:`BusRecorder`).
         options: passed to :class:`BusRecorder` (split, chunk and queue settings).
 
     Returns immediately.
@@ -335,6 +359,9 @@ def start_recording(
     if session is None:
         owned = session = open_session(bus_cfg or (lab_cfg.bus if lab_cfg is not None else None))
     try:
+        watch = None
+        if clock_host is not None:
+            watch = ClockWatch(session, Keys(namespaces[0]), clock_host or bus_host_name(), WallClock())
         rec = _OwnedSessionRecorder(
             session,
             path,
@@ -342,6 +369,7 @@ def start_recording(
             compression=compression or cap.compression,
             allow_overwrite=allow_overwrite,
             metadata=meta,
+            clock_watch=watch,
             **options,
         )
     except BaseException:

@@ -50,7 +50,7 @@ from flightkit.datasets.euroc import euroc_sensor_yaml, write_euroc_groundtruth
 from flightkit.datasets.mcap_reader import DecodedImage, RecordingReader, decode_image
 from flightkit.datasets.trajectory import Trajectory, write_tum
 from flightkit.datasets.tum import to_tum_depth, tum_associate, write_tum_camera_yaml
-from flightkit.errors import CalibrationError, CaptureError, DatasetError
+from flightkit.errors import CaptureError, DatasetError
 from flightkit.frames import MOCAP_FRAME_ID, WORLD_FRAME_ID, Transform, WorldFrames, quat_wxyz_to_xyzw
 
 __all__ = ["ExportReport", "camera_vehicles", "export_recording", "export_vehicles"]
@@ -169,16 +169,6 @@ def _plan(
     )
 
 
-def _recorded_calibration(rec: RecordingReader) -> CalibrationResult | None:
-    record = rec.calibration().calibration.get(METADATA_RECORD)
-    if record is None:
-        return None
-    try:
-        return CalibrationResult.from_metadata(record)
-    except CalibrationError as exc:
-        raise CaptureError(f"{rec.path}: {exc}") from exc
-
-
 def _prepare_out(out_dir: Path, allow_overwrite: bool) -> None:
     if out_dir.exists() and any(out_dir.iterdir()):
         if not allow_overwrite:
@@ -210,6 +200,7 @@ def export_recording(
     allow_overwrite: bool = False,
     progress: ProgressFn | None = None,
     use_calibration: bool = True,
+    calibration: CalibrationResult | None = None,
 ) -> ExportReport:
     """Write ``src`` (an MCAP recording) as a ``tum`` or ``euroc`` folder at ``out_dir``.
 
@@ -221,7 +212,9 @@ def export_recording(
         use_calibration: apply the recording's ``calibration.time_extrinsics`` record (written by
             ``flightkit calibrate --write REC.mcap``) when it has one: its ``T_body_camera``
             (unless ``T_body_camera`` is given) and its time offset, which moves the ground
-            truth onto the camera's clock.
+            truth onto the camera's clock; EuRoC's ``sensor.yaml`` records the offset.
+        calibration: a calibration result (``--calibration FILE.json``) used instead of the
+            recording's own record.
 
     Blocks until done; ``progress(done, total)`` is called as images are written.
 
@@ -241,14 +234,15 @@ def export_recording(
         rec = RecordingReader(src)
         frames = rec.world_frames(T_world_mocap)
         plan = _plan(rec, fmt, camera, mocap_body, frames, vehicle)
+        cal = calibration or (rec.measured_calibration() if use_calibration else None)
     except DatasetError as exc:
         raise CaptureError(str(exc)) from exc
     T_bc = T_body_camera or plan.T_body_camera  # noqa: N806
     report = ExportReport(out, fmt, plan.main, max_diff_s=max_diff_s, frame=frame)
-    cal = _recorded_calibration(rec) if use_calibration else None
+    origin = "the given calibration file" if calibration is not None else f"the recording's {METADATA_RECORD} record"
     if cal is not None and T_body_camera is None and cal.T_body_camera is not None:
         T_bc = cal.T_body_camera  # noqa: N806
-        report.notes.append(f"T_body_camera from the recording's {METADATA_RECORD} record (flightkit calibrate)")
+        report.notes.append(f"T_body_camera from {origin} (flightkit calibrate)")
     if T_bc is None:
         T_bc = Transform()  # noqa: N806
         report.notes.append("no extrinsics in the recording: ground truth is the mocap body pose (T_body_camera = I)")
@@ -278,7 +272,8 @@ def export_recording(
     if fmt == "tum":
         _export_tum(src, out, plan, images, body_traj, T_bc, max_diff_ns, report, total, progress)
     else:
-        _export_euroc(src, out, plan, images, body_traj, T_bc, max_diff_ns, report, total, progress)
+        _export_euroc(src, out, plan, images, body_traj, T_bc, max_diff_ns, report, total, progress,
+                      cal if cal is not None and cal.time_offset_ms is not None else None)
     logger.info("%s", report.summary())
     return report
 
@@ -406,6 +401,7 @@ def _export_euroc(
     report: ExportReport,
     total: int,
     progress: ProgressFn | None,
+    timing: CalibrationResult | None,
 ) -> None:
     mav0 = out / "mav0"
     cams = {plan.main_topic: mav0 / "cam0"}
@@ -437,7 +433,7 @@ def _export_euroc(
             T_bs = T_bc @ Transform(translation=np.array([baseline, 0.0, 0.0]))  # noqa: N806
             report.right_images = len(stamps)
         (d / "sensor.yaml").write_text(
-            euroc_sensor_yaml(info, T_bs, rate, f"{d.name} exported by flightkit from {src.name}")
+            euroc_sensor_yaml(info, T_bs, rate, f"{d.name} exported by flightkit from {src.name}", timing)
         )
     (mav0 / "body.yaml").write_text("# Body frame: the mocap rigid body (FLU)\nsensor_type: body\n")
     if body_traj is not None:

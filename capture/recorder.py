@@ -34,11 +34,20 @@ from pathlib import Path
 from typing import Literal
 
 from flightkit import __version__
+from flightkit.datasets.mcap_reader import CAPTURE_STAMP_KEY
 from flightkit.datasets.mcap_recovery import finalize_in_place
 from flightkit.datasets.mcap_writer import CompressionType, FastMcapWriter
 from flightkit.errors import CaptureError
 
-__all__ = ["Compression", "Recorder", "RecordingReport", "StreamSample", "StreamStats", "qos_profile_yaml"]
+__all__ = [
+    "Compression",
+    "Recorder",
+    "RecordingReport",
+    "StreamSample",
+    "StreamStats",
+    "qos_profile_yaml",
+]
+
 
 logger = logging.getLogger(__name__)
 
@@ -56,9 +65,12 @@ class StreamSample:
         msgtype: ROS 2 type name, e.g. ``sensor_msgs/msg/Image``.
         payload: CDR bytes (with the 4-byte encapsulation header).
         seq: the publisher's per-stream sequence number.
-        publish_time_ns: when the publisher sent it (its stamp), ns since epoch.
+        publish_time_ns: when the publisher put it on the bus (bus time), ns since epoch; the
+            capture time stays in the message's header stamp.
         log_time_ns: when we received it, ns since epoch.
         reliable: True for streams that must not drop (mocap), for the QoS metadata.
+        stamp_source: where the header stamps come from (``device``, ``host``; ``""`` not said),
+            recorded in the channel's metadata as ``flightkit.capture_stamp``.
     """
 
     topic: str
@@ -68,6 +80,7 @@ class StreamSample:
     publish_time_ns: int
     log_time_ns: int
     reliable: bool = True
+    stamp_source: str = ""
 
 
 def qos_profile_yaml(reliable: bool) -> str:
@@ -346,9 +359,10 @@ class Recorder:
                 sid = cur.writer.register_schema(s.msgtype, "ros2msg", text.encode())
                 cur.schemas[s.msgtype] = sid
             topic = s.topic if s.topic.startswith("/") else "/" + s.topic
-            ch = cur.writer.register_channel(
-                topic, "cdr", sid, {"offered_qos_profiles": qos_profile_yaml(s.reliable)}
-            )
+            ch = cur.writer.register_channel(topic, "cdr", sid, {
+                "offered_qos_profiles": qos_profile_yaml(s.reliable),
+                CAPTURE_STAMP_KEY: s.stamp_source or "unknown",
+            })
             cur.channels[s.topic] = ch
         cur.writer.add_message(ch, s.log_time_ns, s.payload, s.publish_time_ns, s.seq & 0xFFFFFFFF)
         cur.unflushed += len(s.payload) + 31

@@ -1,8 +1,7 @@
 """The keyframe methods' motion estimators, one per method behind one interface.
 
-Each takes the front end's tracks of the keyframe's 3D points (``estimation.pipeline.VisualOdometry``:
-detection, tracking, stereo and depth lookup, keyframes, the pose polish and the depth fusion) and
-returns the keyframe-to-current motion:
+Each takes the front end's tracks of the keyframe's 3D points (:class:`Tracks`, from
+``estimation.frontend.FrontEnd``) and returns the keyframe-to-current motion:
 
 * :class:`PnpEstimator` (``stereo``, ``rgbd-pnp``): PnP + RANSAC on the keyframe points (rgbd-pnp:
   SQPnP without RANSAC when the prediction explains the tracks), then the depth polish;
@@ -13,15 +12,19 @@ returns the keyframe-to-current motion:
   (from the prediction or a vectorised RANSAC), then the polish.
 
 ``flow`` has its own estimator (``estimation.flow_vo.FlowEstimator``): it keeps no keyframe.
+Each estimator has its options object (``estimation.vo_options``) and reads the shared ones.
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Protocol
+from collections import Counter
+from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 import numpy.typing as npt
 
+from estimation.frontend import CameraGeometry
 from estimation.motion import (
     Motion,
     essential_from_prior,
@@ -33,277 +36,304 @@ from estimation.motion import (
     rigid_from_prior,
     rigidity_inliers,
 )
-from estimation.vo_options import Method
+from estimation.polish import PosePolisher
+from estimation.vo_options import EssentialOptions, KabschOptions, Method, PnpOptions, VoOptions
 
-if TYPE_CHECKING:
-    from estimation.pipeline import VisualOdometry
-
-__all__ = ["EssentialEstimator", "KabschEstimator", "MotionEstimator", "PnpEstimator", "keyframe_estimator"]
+__all__ = [
+    "EssentialEstimator",
+    "KabschEstimator",
+    "MotionEstimator",
+    "PnpEstimator",
+    "Tracks",
+    "keyframe_estimator",
+]
 
 F64 = npt.NDArray[np.float64]
 F32 = npt.NDArray[np.float32]
+U8 = npt.NDArray[np.uint8]
 
 _LEAST_SQUARES_PX = 1e9
 """A Huber threshold no reprojection residual reaches: plain least squares."""
 
 
+@dataclass(frozen=True, slots=True, eq=False)
+class Tracks:
+    """The keyframe's points tracked into the current frame, with that frame's images.
+
+    Attributes:
+        X_kf: (N, 3) the points in the keyframe's camera frame, m.
+        px_kf: (N, 2) their pixels in the keyframe.
+        px_cur, und_cur: (N, 2) their pixels in the current frame (as tracked; undistorted).
+        guess: the predicted ``T_cur_kf`` (constant velocity).
+        has_prior: the prediction comes from a measured motion (not the identity of a start).
+        gray, right_gray, depth_m: the current frame's images (right or depth None when absent).
+    """
+
+    X_kf: F64
+    px_kf: F32
+    px_cur: F32
+    und_cur: F64
+    guess: F64
+    has_prior: bool
+    gray: U8
+    right_gray: U8 | None
+    depth_m: F32 | None
+
+
 class MotionEstimator(Protocol):
     """One keyframe method's motion estimation (see the module docstring)."""
 
-    def estimate(
-        self,
-        X_kf: F64,
-        px_kf: F32,
-        px_cur: F32,
-        und_cur: F64,
-        depth_m: F32 | None,
-        guess: F64,
-        right_pyr: npt.NDArray[np.uint8] | None,
-        pyr: npt.NDArray[np.uint8],
-        right_gray: npt.NDArray[np.uint8] | None,
-    ) -> Motion: ...
+    def estimate(self, t: Tracks) -> Motion:
+        """The motion ``T_cur_kf`` of the tracked keyframe points, with its inliers (of ``t``)."""
+        ...
 
 
 class EssentialEstimator:
     """``rgbd-essential``: the essential matrix, metric scale and cheirality from depth."""
 
-    def __init__(self, vo: VisualOdometry) -> None:
-        self.vo = vo
+    def __init__(
+        self, geo: CameraGeometry, polisher: PosePolisher, opts: VoOptions, eo: EssentialOptions, paths: Counter[str]
+    ) -> None:
+        self.geo, self.polisher, self.opts, self.eo, self.paths = geo, polisher, opts, eo, paths
 
-    def estimate(
-        self,
-        X_kf: F64,
-        px_kf: F32,
-        px_cur: F32,
-        und_cur: F64,
-        depth_m: F32 | None,
-        guess: F64,
-        right_pyr: npt.NDArray[np.uint8] | None,
-        pyr: npt.NDArray[np.uint8],
-        right_gray: npt.NDArray[np.uint8] | None,
-    ) -> Motion:
-        """The motion ``T_cur_kf`` of the keyframe points ``X_kf`` (keyframe frame, m) seen at
-        ``px_kf`` in the keyframe and tracked to ``px_cur`` (``und_cur`` undistorted) now, from
-        the prediction ``guess``; the images are this frame's."""
-        vo = self.vo
-        o = vo.opts
-        und_kf = vo._undistort(px_kf)
+    def estimate(self, t: Tracks) -> Motion:
+        """See :meth:`MotionEstimator.estimate`."""
+        geo, o, eo = self.geo, self.opts, self.eo
+        X_kf, und_cur, guess = t.X_kf, t.und_cur, t.guess
+        und_kf = geo.undistort(t.px_kf)
         parallax = median(np.linalg.norm(und_cur - und_kf, axis=1))
-        m = Motion(guess, np.zeros(len(px_cur), dtype=bool), False)
+        n = len(t.px_cur)
+        m = Motion(guess, np.zeros(n, dtype=bool), False)
         m_prior = None
-        if parallax >= o.essential_min_parallax_px:
-            if o.essential_prior_gate_px > 0 and vo.T_step is not None:
+        if parallax >= eo.min_parallax_px:
+            if eo.prior_gate_px > 0 and t.has_prior:
                 # The constant-velocity prediction usually explains the tracks: then no RANSAC.
                 m_prior = essential_from_prior(
                     und_kf,
                     und_cur,
-                    vo.K,
+                    geo.K,
                     X_kf,
                     guess,
-                    gate_px=o.essential_prior_gate_px,
-                    threshold_px=o.essential_threshold_px,
-                    min_fraction=o.essential_prior_min_fraction,
+                    gate_px=eo.prior_gate_px,
+                    threshold_px=eo.threshold_px,
+                    min_fraction=eo.prior_min_fraction,
                     min_inliers=o.min_inliers,
-                    iterations=o.essential_prior_iterations,
+                    iterations=eo.prior_iterations,
                 )
-            vo.path_counts["essential-prior" if m_prior is not None else "essential-ransac"] += 1
+            self.paths["essential-prior" if m_prior is not None else "essential-ransac"] += 1
             m = (
                 m_prior
                 if m_prior is not None
                 else essential_metric(
                     und_kf,
                     und_cur,
-                    vo.K,
+                    geo.K,
                     X_kf,
-                    threshold_px=o.essential_threshold_px,
+                    threshold_px=eo.threshold_px,
                     min_inliers=o.min_inliers,
-                    cheirality=o.essential_cheirality,
+                    cheirality=eo.cheirality,
                     agree_px=2.0 * o.reproj_px,
                 )
             )
         if m.ok:
-            # With little parallax or a mostly planar scene (the floor) the 5-point RANSAC
-            # can settle on a wrong motion that a few points satisfy. The keyframe's depth
-            # tells: the right motion (with its metric scale) also reprojects the 3D points
-            # of most tracks, which passed the forward-backward check. The points that
-            # reproject are the inliers (depth edges and holes, invisible to the epipolar
-            # test, drop out here).
-            agree = vo._reproj_err2(m.T_cur_ref, X_kf, und_cur) < (2.0 * o.reproj_px) ** 2
-            if np.count_nonzero(agree) < max(o.min_inliers, 0.5 * len(px_cur)):
-                m = Motion(guess, np.zeros(len(px_cur), dtype=bool), False)
+            # With little parallax or a mostly planar scene (the floor) the 5-point RANSAC can
+            # settle on a wrong motion that a few points satisfy; the right one (with its metric
+            # scale) also reprojects the 3D points of most tracks: those are the inliers.
+            agree = geo.reproj_err2(m.T_cur_ref, X_kf, und_cur) < (2.0 * o.reproj_px) ** 2
+            if np.count_nonzero(agree) < max(o.min_inliers, 0.5 * n):
+                m = Motion(guess, np.zeros(n, dtype=bool), False)
             else:
-                # Least squares on the reprojection of those points from the 5-point motion
-                # (as PnP's final fit; Gauss-Newton, converged), inliers re-selected, before
-                # the polish below. Needed after the prior-guided path too: at 1-5 cm
-                # baselines the epipolar geometry pins the translation direction only to a
-                # few degrees, and the depth polish alone (4 Huber steps) kept that error
-                # (ATE 0.015-0.34 m).
+                # Least squares on the reprojection of those points, inliers re-selected, before
+                # the polish (the epipolar geometry pins a short translation's direction poorly).
                 T_lm = refine_pose(
-                    m.T_cur_ref, X_kf[agree], und_cur[agree], vo.K, huber_px=_LEAST_SQUARES_PX, iterations=20
+                    m.T_cur_ref, X_kf[agree], und_cur[agree], geo.K, huber_px=_LEAST_SQUARES_PX, iterations=20
                 )
-                mask = agree & (vo._reproj_err2(T_lm, X_kf, und_cur) < o.reproj_px**2)
+                mask = agree & (geo.reproj_err2(T_lm, X_kf, und_cur) < o.reproj_px**2)
                 m = (
                     Motion(T_lm, mask, True)
                     if np.count_nonzero(mask) >= o.min_inliers
                     else Motion(m.T_cur_ref, agree, True)
                 )
-        if not m.ok and o.essential_pnp_prior and o.refine_with_depth and vo.T_step is not None:
-            m_pp = vo._pnp_from_prior(X_kf, px_cur, und_cur, guess, depth_m, pyr, right_gray)
+        if not m.ok and eo.pnp_prior_gate_px > 0 and o.refine_with_depth and t.has_prior:
+            m_pp = self.polisher.pnp_from_prior(
+                X_kf,
+                t.px_cur,
+                und_cur,
+                guess,
+                t.depth_m,
+                t.gray,
+                t.right_gray,
+                eo.pnp_prior_gate_px,
+                eo.prior_min_fraction,
+            )
             if m_pp is not None:
-                vo.path_counts["pnp-prior"] += 1
+                self.paths["pnp-prior"] += 1
                 return m_pp
         if not m.ok:
-            vo.path_counts["pnp"] += 1
+            self.paths["pnp"] += 1
             m = pnp(
                 X_kf,
                 und_cur,
-                vo.K,
+                geo.K,
                 method=o.pnp_method,
                 reproj_px=o.reproj_px,
                 min_inliers=o.min_inliers,
                 guess_T_cur_ref=guess,
                 ransac_kernel=o.pnp_kernel,
             )
-        return vo._polish(m, X_kf, px_cur, und_cur, depth_m, pyr, right_gray)
+        return self.polisher.polish(m, X_kf, t.px_cur, und_cur, t.depth_m, t.gray, t.right_gray)
 
 
 class KabschEstimator:
     """``rgbd-kabsch``: 3D-3D Kabsch on the depth of both frames."""
 
-    def __init__(self, vo: VisualOdometry) -> None:
-        self.vo = vo
-
-    def estimate(
+    def __init__(
         self,
-        X_kf: F64,
-        px_kf: F32,
-        px_cur: F32,
-        und_cur: F64,
-        depth_m: F32 | None,
-        guess: F64,
-        right_pyr: npt.NDArray[np.uint8] | None,
-        pyr: npt.NDArray[np.uint8],
-        right_gray: npt.NDArray[np.uint8] | None,
-    ) -> Motion:
-        """The motion ``T_cur_kf`` of the keyframe points ``X_kf`` (keyframe frame, m) seen at
-        ``px_kf`` in the keyframe and tracked to ``px_cur`` (``und_cur`` undistorted) now, from
-        the prediction ``guess``; the images are this frame's."""
-        vo = self.vo
-        o = vo.opts
-        assert depth_m is not None
-        z = vo._depth_at(depth_m, px_cur)
+        geo: CameraGeometry,
+        polisher: PosePolisher,
+        opts: VoOptions,
+        ko: KabschOptions,
+        paths: Counter[str],
+        rng: np.random.Generator,
+    ) -> None:
+        self.geo, self.polisher, self.opts, self.ko, self.paths, self.rng = geo, polisher, opts, ko, paths, rng
+
+    def estimate(self, t: Tracks) -> Motion:
+        """See :meth:`MotionEstimator.estimate`."""
+        geo, o, ko = self.geo, self.opts, self.ko
+        assert t.depth_m is not None
+        z = geo.depth_at(t.depth_m, t.px_cur)
         ok = np.isfinite(z)
-        X_cur = vo._backproject(und_cur, np.where(ok, z, 1.0))
+        X_cur = geo.backproject(t.und_cur, np.where(ok, z, 1.0))
         idx = np.flatnonzero(ok)
         all_ok = len(idx) == len(ok)  # usual: no copies of the pairs
-        X_ref = X_kf if all_ok else X_kf[idx]
+        X_ref = t.X_kf if all_ok else t.X_kf[idx]
         X_cur = X_cur if all_ok else X_cur[idx]
         # Kinect-like depth noise grows with z^2: threshold scaled by the mean squared depth.
         zz = float(np.mean(X_ref[:, 2] ** 2)) if len(idx) else 1.0
-        thr_m = o.kabsch_threshold_m * max(1.0, zz)
+        thr_m = ko.threshold_m * max(1.0, zz)
         m_rigid = None
-        if o.kabsch_prior_gate > 0 and vo.T_step is not None:
+        if ko.prior_gate > 0 and t.has_prior:
             # The constant-velocity prediction usually explains the 3D-3D pairs: then no RANSAC.
             m_rigid = rigid_from_prior(
                 X_ref,
                 X_cur,
-                guess,
+                t.guess,
                 threshold_m=thr_m,
-                gate_m=o.kabsch_prior_gate * thr_m,
-                min_fraction=o.kabsch_prior_min_fraction,
+                gate_m=ko.prior_gate * thr_m,
+                min_fraction=ko.prior_min_fraction,
                 min_inliers=o.min_inliers,
             )
-            vo.path_counts["kabsch-prior" if m_rigid is not None else "kabsch-ransac"] += 1
+            self.paths["kabsch-prior" if m_rigid is not None else "kabsch-ransac"] += 1
         m = (
             m_rigid
             if m_rigid is not None
             else ransac_rigid(
-                X_ref,
-                X_cur,
-                threshold_m=thr_m,
-                min_inliers=o.min_inliers,
-                rng=vo.rng,
-                first_batch=o.kabsch_first_batch,
+                X_ref, X_cur, threshold_m=thr_m, min_inliers=o.min_inliers, rng=self.rng, first_batch=ko.first_batch
             )
         )
-        mask = np.zeros(len(px_cur), dtype=bool)
+        mask = np.zeros(len(t.px_cur), dtype=bool)
         mask[idx] = m.inliers
-        # The rigid fit weighs every point's depth noise (both frames) equally; polish it
-        # like PnP (reprojection plus this frame's depth), which also keeps the depth
-        # measurements for fusion: the per-step error fell 23-55 % on every sequence.
+        # The rigid fit weighs every point's depth noise (both frames) equally; polish it like
+        # PnP (reprojection plus this frame's depth), which also keeps the depth for fusion.
         m = Motion(m.T_cur_ref, mask, m.ok)
-        if not o.kabsch_polish:
+        if not ko.polish:
             return m
-        return vo._polish(m, X_kf, px_cur, und_cur, depth_m, pyr, right_gray, z)
+        return self.polisher.polish(m, t.X_kf, t.px_cur, t.und_cur, t.depth_m, t.gray, t.right_gray, z)
 
 
 class PnpEstimator:
     """``stereo`` and ``rgbd-pnp``: PnP on the keyframe's 3D points."""
 
-    def __init__(self, vo: VisualOdometry) -> None:
-        self.vo = vo
-
-    def estimate(
+    def __init__(
         self,
-        X_kf: F64,
-        px_kf: F32,
-        px_cur: F32,
-        und_cur: F64,
-        depth_m: F32 | None,
-        guess: F64,
-        right_pyr: npt.NDArray[np.uint8] | None,
-        pyr: npt.NDArray[np.uint8],
-        right_gray: npt.NDArray[np.uint8] | None,
-    ) -> Motion:
-        """The motion ``T_cur_kf`` of the keyframe points ``X_kf`` (keyframe frame, m) seen at
-        ``px_kf`` in the keyframe and tracked to ``px_cur`` (``und_cur`` undistorted) now, from
-        the prediction ``guess``; the images are this frame's."""
-        vo = self.vo
-        o = vo.opts
-        sel = np.ones(len(px_cur), dtype=bool)
-        if vo.method is Method.STEREO and o.inliers == "rigidity" and right_pyr is not None:
-            init = (vo.rig.fx * vo.rig.baseline_m / np.maximum(X_kf[:, 2], 1e-3)).astype(np.float32)  # type: ignore[union-attr]
-            X_cur, ok = vo._points_3d(px_cur, right_pyr, pyr, None, init)
-            sel = np.zeros(len(px_cur), dtype=bool)
-            idx = np.flatnonzero(ok)
-            if len(idx) >= o.min_inliers:
-                sel[idx[rigidity_inliers(X_kf[idx], X_cur[idx], tol_m=0.05, rel_tol=0.03)]] = True
-            if np.count_nonzero(sel) < o.min_inliers:
-                sel[:] = True
+        geo: CameraGeometry,
+        polisher: PosePolisher,
+        opts: VoOptions,
+        po: PnpOptions,
+        method: Method,
+    ) -> None:
+        self.geo, self.polisher, self.opts, self.po = geo, polisher, opts, po
+        self.stereo = method is Method.STEREO
+
+    def _rigid_subset(self, t: Tracks) -> npt.NDArray[np.bool_]:
+        """Stereo, ``inliers="rigidity"``: the tracks whose distances to the others kept (max clique)."""
+        o, geo = self.opts, self.geo
+        n = len(t.px_cur)
+        if t.right_gray is None or geo.rig is None:
+            return np.ones(n, dtype=bool)
+        init = (geo.rig.fx * geo.rig.baseline_m / np.maximum(t.X_kf[:, 2], 1e-3)).astype(np.float32)
+        X_cur, ok = geo.points_3d(t.px_cur, t.right_gray, t.gray, None, init)
+        sel = np.zeros(n, dtype=bool)
+        idx = np.flatnonzero(ok)
+        if len(idx) >= o.min_inliers:
+            sel[idx[rigidity_inliers(t.X_kf[idx], X_cur[idx], tol_m=0.05, rel_tol=0.03)]] = True
+        if np.count_nonzero(sel) < o.min_inliers:
+            sel[:] = True
+        return sel
+
+    def estimate(self, t: Tracks) -> Motion:
+        """See :meth:`MotionEstimator.estimate`."""
+        o, po, geo = self.opts, self.po, self.geo
+        n = len(t.px_cur)
+        sel = self._rigid_subset(t) if self.stereo and po.inliers == "rigidity" else np.ones(n, dtype=bool)
         idx = np.flatnonzero(sel)
-        if o.pnp_prior_gate_px > 0 and o.refine_with_depth and vo.method is Method.RGBD_PNP:
+        if po.prior_gate_px > 0 and o.refine_with_depth and not self.stereo:
             # The constant-velocity prediction usually explains the tracks: then no RANSAC.
-            m_prior = vo._pnp_from_prior(X_kf[idx], px_cur[idx], und_cur[idx], guess, depth_m, pyr, right_gray)
+            m_prior = self.polisher.pnp_from_prior(
+                t.X_kf[idx],
+                t.px_cur[idx],
+                t.und_cur[idx],
+                t.guess,
+                t.depth_m,
+                t.gray,
+                t.right_gray,
+                po.prior_gate_px,
+                po.prior_min_fraction,
+            )
             if m_prior is not None:
-                mask = np.zeros(len(px_cur), dtype=bool)
+                mask = np.zeros(n, dtype=bool)
                 mask[idx] = m_prior.inliers
-                if vo._meas is not None:
-                    vo._meas = (idx[vo._meas[0]], vo._meas[1])
+                self.polisher.remap(idx)
                 return Motion(m_prior.T_cur_ref, mask, True)
         m = pnp(
-            X_kf[idx],
-            und_cur[idx],
-            vo.K,
+            t.X_kf[idx],
+            t.und_cur[idx],
+            geo.K,
             method=o.pnp_method,
             reproj_px=o.reproj_px,
             min_inliers=o.min_inliers,
-            guess_T_cur_ref=guess,
+            guess_T_cur_ref=t.guess,
             ransac_kernel=o.pnp_kernel,
         )
-        mask = np.zeros(len(px_cur), dtype=bool)
+        mask = np.zeros(n, dtype=bool)
         mask[idx] = m.inliers
         T = m.T_cur_ref
         if m.ok and o.refine_with_depth:
-            T = vo._refine(T, X_kf[mask], px_cur[mask], und_cur[mask], depth_m, pyr, right_gray)
-            if vo._meas is not None:
-                vo._meas = (np.flatnonzero(mask)[vo._meas[0]], vo._meas[1])
+            T = self.polisher.refine(
+                T, t.X_kf[mask], t.px_cur[mask], t.und_cur[mask], t.depth_m, t.gray, t.right_gray
+            )
+            self.polisher.remap(mask)
         return Motion(T, mask, m.ok)
 
 
-def keyframe_estimator(vo: VisualOdometry) -> MotionEstimator:
-    """The estimator of ``vo``'s method (not ``flow``)."""
-    if vo.method is Method.RGBD_ESSENTIAL:
-        return EssentialEstimator(vo)
-    if vo.method is Method.RGBD_KABSCH:
-        return KabschEstimator(vo)
-    return PnpEstimator(vo)
+def keyframe_estimator(
+    method: Method,
+    geo: CameraGeometry,
+    polisher: PosePolisher,
+    opts: VoOptions,
+    paths: Counter[str],
+    rng: np.random.Generator,
+) -> MotionEstimator:
+    """The estimator of a keyframe method (not ``flow``), with its options from ``opts``.
+
+    Raises:
+        EstimationError: ``opts.estimator`` belongs to another method.
+    """
+    mo = opts.estimator_options(method)
+    if isinstance(mo, EssentialOptions):
+        return EssentialEstimator(geo, polisher, opts, mo, paths)
+    if isinstance(mo, KabschOptions):
+        return KabschEstimator(geo, polisher, opts, mo, paths, rng)
+    assert isinstance(mo, PnpOptions)
+    return PnpEstimator(geo, polisher, opts, mo, method)

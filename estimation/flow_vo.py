@@ -4,8 +4,8 @@ Shi-Tomasi corners of a reference frame with a depth each (depth image, per-poin
 the stereo altitude), tracked by LK into every new frame; the 6-DoF velocity over the interval
 since the reference from the interaction matrix (3-point RANSAC, reweighted refits), polished
 on the reference points' reprojection and integrated to a pose. Runs behind
-:class:`~estimation.pipeline.VisualOdometry`, whose front end (tracker, stereo, depth lookup,
-prediction, sanity check, output) it shares.
+:class:`~estimation.pipeline.VisualOdometry`, sharing its camera geometry (tracking windows,
+stereo, depth lookup) and pose track (prediction, sanity check).
 """
 
 from __future__ import annotations
@@ -13,22 +13,22 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, cast
+from typing import Any, cast
 
 import cv2
 import numpy as np
 import numpy.typing as npt
 
-from estimation.features import shi_tomasi
+from estimation.features import DescriptorExtractor, shi_tomasi
 from estimation.flow import integrate_velocity, polish_motion, stereo_altitude_m, track_klt, velocity_ransac
+from estimation.frontend import CameraGeometry
 from estimation.motion import invert
-from estimation.vo_result import FramePose, FrameTimer, Quality
+from estimation.pose_track import PoseTrack
+from estimation.vo_options import FlowOptions, VoOptions
+from estimation.vo_result import FrameTimer, Quality
 from flightkit.errors import EstimationError
 
-if TYPE_CHECKING:
-    from estimation.pipeline import VisualOdometry
-
-__all__ = ["FlowEstimator"]
+__all__ = ["FlowEstimator", "FlowStep"]
 
 logger = logging.getLogger(__name__)
 
@@ -42,46 +42,76 @@ lower on 5 of the 6 synthetic runs (e.g. the rectangle at 320x240 4.3 -> 3.8 mm)
 error 5-15 % lower on all six (docs/estimation-log.md, "ninth pass")."""
 
 
-class FlowEstimator:
-    """The state and steps of ``flow`` for one :class:`~estimation.pipeline.VisualOdometry`
-    (its front end, ``vo``): the reference frame and the stereo altitude."""
+@dataclass(frozen=True, slots=True)
+class FlowStep:
+    """What one frame of ``flow`` gave: inliers, quality, and whether it became the reference."""
 
-    def __init__(self, vo: VisualOdometry) -> None:
-        self.vo = vo
+    n_inliers: int
+    quality: Quality
+    new_reference: bool
+
+
+class FlowEstimator:
+    """The state and steps of ``flow``: the reference frame and the stereo altitude.
+
+    Args:
+        geo: the run's camera (tracking windows, depth lookup, sparse stereo).
+        opts: the shared options; ``fo``: flow's own.
+        pose: the run's pose (moved by :meth:`process`).
+        orb: ORB extractor (for the stereo altitude).
+        rng: RANSAC's random generator.
+    """
+
+    def __init__(
+        self,
+        geo: CameraGeometry,
+        opts: VoOptions,
+        fo: FlowOptions,
+        pose: PoseTrack,
+        orb: DescriptorExtractor,
+        rng: np.random.Generator,
+    ) -> None:
+        self.geo, self.opts, self.fo, self.pose, self.orb, self.rng = geo, opts, fo, pose, orb, rng
         self.ref: _FlowRef | None = None
         self.altitude_m = math.nan
         self._warned_altitude = False
 
     def process(
         self,
+        index: int,
         stamp_ns: int,
         gray: npt.NDArray[np.uint8],
         right_gray: npt.NDArray[np.uint8] | None,
         depth_m: F32 | None,
-    ) -> FramePose:
-        """Flow: track the reference frame's points into this frame, the velocity over the
-        interval since the reference from their motion, the pose = the reference pose moved
-        by that velocity for that time. The reference moves on to this frame once the points
-        moved ``flow_ref_px`` (median), too few remain, or the estimate failed."""
-        vo = self.vo
-        o = vo.opts
-        timer = FrameTimer()
-        per_point_stereo = depth_m is None and o.flow_depth == "stereo"
+        timer: FrameTimer,
+    ) -> FlowStep:
+        """Frame ``index``: track the reference frame's points into this frame, the velocity over
+        the interval since the reference from their motion, the pose = the reference pose moved
+        by that velocity for that time (``pose`` updated, its stamp too). The reference moves on
+        to this frame once the points moved ``ref_px`` (median), too few remain, or the estimate
+        failed.
+
+        Raises:
+            EstimationError: neither depth nor a stereo pair.
+        """
+        geo, o, fo, pose = self.geo, self.opts, self.fo, self.pose
+        per_point_stereo = depth_m is None and fo.depth == "stereo"
         if (
             depth_m is None
             and not per_point_stereo
-            and (vo.index % max(1, o.altitude_every) == 0 or not math.isfinite(self.altitude_m))
+            and (index % max(1, fo.altitude_every) == 0 or not math.isfinite(self.altitude_m))
         ):
-            if right_gray is None or vo.rig is None:
+            if right_gray is None or geo.rig is None:
                 raise EstimationError("method 'flow' needs a depth image or a stereo pair (for the altitude)")
-            z, _ = stereo_altitude_m(gray, right_gray, vo.rig.fx, vo.rig.baseline_m, vo.orb)
+            z, _ = stereo_altitude_m(gray, right_gray, geo.rig.fx, geo.rig.baseline_m, self.orb)
             if math.isfinite(z) and o.min_depth_m <= z <= o.max_depth_m:
                 self.altitude_m = z
             elif not math.isfinite(self.altitude_m) and not self._warned_altitude:
                 self._warned_altitude = True
                 logger.warning(
                     "flow: no stereo altitude in %.1f-%.0f m from this pair (got %.2f m); the motion cannot be "
-                    "estimated until there is one (flow_depth='altitude' needs a camera looking down at flat ground)",
+                    "estimated until there is one (FlowOptions.depth='altitude' needs a camera looking down at "
+                    "flat ground)",
                     o.min_depth_m,
                     o.max_depth_m,
                     z,
@@ -90,23 +120,23 @@ class FlowEstimator:
         if self.ref is None:
             self._new_ref(stamp_ns, gray, right_gray, depth_m, np.empty((0, 2), np.float32), np.empty((0, 2)))
             timer.lap("keyframe")
-            vo.prev_stamp_ns = stamp_ns
-            return vo._emit(stamp_ns, 0, Quality.INIT, True, timer)
+            pose.prev_stamp_ns = stamp_ns
+            return FlowStep(0, Quality.INIT, True)
         ref = self.ref
-        dt_s = max((stamp_ns - vo.prev_stamp_ns) * 1e-9, 1e-4)  # since the previous frame
+        dt_s = pose.dt_s(stamp_ns)  # since the previous frame
         dt_ref_s = max((stamp_ns - ref.stamp_ns) * 1e-9, 1e-4)  # since the reference
         # Each track starts where it was in the previous frame, moved as it moved then (none
         # when the reference is the previous frame: LK's own pyramid finds the motion).
-        one_step = ref.stamp_ns == vo.prev_stamp_ns
+        one_step = ref.stamp_ns == pose.prev_stamp_ns
         px, ok = track_klt(
             ref.gray,
             gray,
             ref.pts,
             o.fb_max_px,
-            vo.klt_win,
-            vo.klt_levels,
+            geo.klt_win,
+            geo.klt_levels,
             guess=None if one_step else (ref.trk + ref.step_px).astype(np.float32),
-            back_levels=vo.klt_back_levels,
+            back_levels=geo.klt_back_levels,
             max_iters=o.klt_iters,
         )
         tracked = np.flatnonzero(ok)
@@ -114,34 +144,32 @@ class FlowEstimator:
         timer.lap("track")
         quality = Quality.PREDICTED
         n_inl = 0
-        T_world_cur = vo.T_world_cam @ invert(vo._predict(dt_s))
+        T_world_cur = pose.T_world_cam @ invert(pose.predict(dt_s))
         if len(idx) >= o.min_inliers:
             x0, x1 = ref.xn[idx], self._normalised(px[idx])
-            thr = o.flow_threshold_px / vo.intr.fx / dt_ref_s
-            twist, inl = velocity_ransac(
-                x0, x1, ref.Z[idx], dt_ref_s, thr, rng=vo.rng, robust_iters=o.flow_robust_iters
-            )
+            thr = fo.threshold_px / geo.intr.fx / dt_ref_s
+            twist, inl = velocity_ransac(x0, x1, ref.Z[idx], dt_ref_s, thr, rng=self.rng, robust_iters=fo.robust_iters)
             if np.count_nonzero(inl) >= o.min_inliers:
                 T_ref_cur = integrate_velocity(twist, dt_ref_s)
-                if o.flow_polish:
+                if fo.polish:
                     T_ref_cur = polish_motion(
-                        T_ref_cur, x0[inl], ref.Z[idx][inl], x1[inl], _FLOW_POLISH_HUBER_PX / vo.intr.fx
+                        T_ref_cur, x0[inl], ref.Z[idx][inl], x1[inl], _FLOW_POLISH_HUBER_PX / geo.intr.fx
                     )
                 T_cand = ref.T_world_cam @ T_ref_cur
-                if vo._plausible(invert(T_cand) @ vo.T_world_cam, dt_s):
+                if pose.plausible(invert(T_cand) @ pose.T_world_cam, dt_s):
                     T_world_cur = T_cand
                     n_inl = int(np.count_nonzero(inl))
                     quality = Quality.GOOD if n_inl >= 2 * o.min_inliers else Quality.WEAK
         timer.lap("motion")
         if quality is not Quality.PREDICTED:
-            vo.T_step, vo.step_dt_s = invert(T_world_cur) @ vo.T_world_cam, dt_s
-        vo.T_world_cam = T_world_cur
+            pose.measured(invert(T_world_cur) @ pose.T_world_cam, dt_s)
+        pose.T_world_cam = T_world_cur
         step_px = px[tracked] - ref.trk[tracked]
         moved = px[tracked] - ref.pts[tracked]
         renew = (
             quality is Quality.PREDICTED
             or len(tracked) < o.max_features // 2
-            or float(np.median(np.einsum("ij,ij->i", moved, moved))) >= o.flow_ref_px * o.flow_ref_px
+            or float(np.median(np.einsum("ij,ij->i", moved, moved))) >= fo.ref_px * fo.ref_px
         )
         if renew:
             self._new_ref(stamp_ns, gray, right_gray, depth_m, px[tracked], step_px)
@@ -157,14 +185,14 @@ class FlowEstimator:
                 px[tracked],
                 step_px,
             )
-        vo.prev_stamp_ns = stamp_ns
-        return vo._emit(stamp_ns, n_inl, quality, renew, timer)
+        pose.prev_stamp_ns = stamp_ns
+        return FlowStep(n_inl, quality, renew)
 
     def _normalised(self, px: F32) -> F64:
         """Normalised image coordinates ``K^-1 [u, v, 1]`` (undistorted) of pixels, (N, 2)."""
-        vo = self.vo
-        und = vo._undistort(px)
-        return cast(F64, np.c_[(und[:, 0] - vo.intr.cx) / vo.intr.fx, (und[:, 1] - vo.intr.cy) / vo.intr.fy])
+        geo = self.geo
+        und = geo.undistort(px)
+        return cast(F64, np.c_[(und[:, 0] - geo.intr.cx) / geo.intr.fx, (und[:, 1] - geo.intr.cy) / geo.intr.fy])
 
     def _new_ref(
         self,
@@ -177,8 +205,7 @@ class FlowEstimator:
     ) -> None:
         """This frame becomes the flow reference: the tracks kept, topped up with new corners
         when fewer than half remain, each with its depth here."""
-        vo = self.vo
-        o = vo.opts
+        geo, o = self.geo, self.opts
         pts = np.ascontiguousarray(kept_px, dtype=np.float32).reshape(-1, 2)
         step = np.asarray(kept_step_px, dtype=np.float64).reshape(-1, 2)
         if len(pts) < o.max_features // 2:
@@ -187,27 +214,27 @@ class FlowEstimator:
                 mask = np.full(gray.shape, 255, np.uint8)
                 for x, y in pts:
                     cv2.circle(mask, (int(x), int(y)), 8, 0, -1)
-            new = shi_tomasi(gray, o.max_features - len(pts), 0.01, max(5.0, vo.intr.width / 60), mask)
+            new = shi_tomasi(gray, o.max_features - len(pts), 0.01, max(5.0, geo.intr.width / 60), mask)
             pts = np.concatenate([pts, new]) if len(pts) else new
             step = np.concatenate([step, np.zeros((len(new), 2))])
         if depth_m is not None:
-            Z = vo._depth_at(depth_m, pts)
-        elif o.flow_depth == "stereo":
-            if right_gray is None or vo.rig is None:
-                raise EstimationError("flow_depth='stereo' needs the right image in every frame")
-            X, ok = vo._points_3d(pts, right_gray, gray, None, self._init_disparity())
+            Z = geo.depth_at(depth_m, pts)
+        elif self.fo.depth == "stereo":
+            if right_gray is None or geo.rig is None:
+                raise EstimationError("FlowOptions.depth='stereo' needs the right image in every frame")
+            X, ok = geo.points_3d(pts, right_gray, gray, None, self._init_disparity())
             Z = np.where(ok, X[:, 2], np.nan)
         else:
             Z = np.full(len(pts), self.altitude_m)
-        self.ref = _FlowRef(gray, stamp_ns, vo.T_world_cam.copy(), pts, self._normalised(pts), Z, pts, step)
+        self.ref = _FlowRef(gray, stamp_ns, self.pose.T_world_cam.copy(), pts, self._normalised(pts), Z, pts, step)
 
     def _init_disparity(self) -> float:
         """Disparity to start sparse stereo from: that of the current reference's median depth."""
-        vo = self.vo
-        assert vo.rig is not None
+        rig = self.geo.rig
+        assert rig is not None
         ref = self.ref
         z = ref.Z[np.isfinite(ref.Z)] if ref is not None else np.empty(0)
-        return float(vo.rig.fx * vo.rig.baseline_m / np.median(z)) if len(z) else 0.0
+        return float(rig.fx * rig.baseline_m / np.median(z)) if len(z) else 0.0
 
 
 @dataclass(frozen=True, slots=True, eq=False)

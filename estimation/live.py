@@ -97,6 +97,8 @@ class LiveVoConfig:
         base_pos_std_m, base_rot_std_rad: reported uncertainty of a good estimate.
         ref_inliers: inlier count at which an estimate counts as fully good.
         publish_odometry: publish each estimate on ``<ns>/odometry/<method>``.
+        compute_budget_s: on a stall-limited simulated clock, one frame's estimate takes at most
+            this much simulated time (the clock waits for a slower host); None: what it takes.
     """
 
     method: str = "rgbd-pnp"
@@ -109,6 +111,7 @@ class LiveVoConfig:
     base_rot_std_rad: float = 0.01
     ref_inliers: int = 100
     publish_odometry: bool = True
+    compute_budget_s: float | None = None
 
     def __post_init__(self) -> None:
         try:
@@ -129,6 +132,10 @@ class LiveVoConfig:
             )
         if self.ref_inliers < 1 or self.base_pos_std_m <= 0 or self.base_rot_std_rad <= 0:
             raise EstimationError("ref_inliers, base_pos_std_m and base_rot_std_rad must be positive")
+        if self.compute_budget_s is not None and not (0.0 < self.compute_budget_s < math.inf):
+            raise EstimationError(
+                f"compute_budget_s {self.compute_budget_s!r} must be a positive number of seconds or None"
+            )
 
 
 def vision_uncertainty(
@@ -559,8 +566,10 @@ class LiveVo:
                 assert self._pending is not None
                 stamp_ns, color_payload, depth_payload = self._pending
                 self._pending = None
+            budget_s = self.config.compute_budget_s
             try:
-                self._process(stamp_ns, color_payload, depth_payload)
+                with contextlib.nullcontext() if budget_s is None else self.clock.busy(budget_s):
+                    self._process(stamp_ns, color_payload, depth_payload)
             except Exception as exc:  # keep estimating; a bad frame must not end the flight's VO
                 logger.exception("live VO: frame %d failed", stamp_ns)
                 self.error = exc

@@ -1,4 +1,6 @@
-"""Which VO method runs and how it is tuned: :class:`Method` and :class:`VoOptions`.
+"""Which VO method runs and how it is tuned: :class:`Method`, the shared :class:`VoOptions` and
+one options object per motion estimator (:class:`PnpOptions`, :class:`EssentialOptions`,
+:class:`KabschOptions`, :class:`FlowOptions`).
 
 Each option is one line here; how each default was chosen is in docs/estimation-log.md
 ("VoOptions: why each default").
@@ -12,7 +14,7 @@ from dataclasses import dataclass, field
 from estimation.keyframes import KeyframePolicy
 from flightkit.errors import EstimationError
 
-__all__ = ["Method", "VoOptions"]
+__all__ = ["EssentialOptions", "EstimatorOptions", "FlowOptions", "KabschOptions", "Method", "PnpOptions", "VoOptions"]
 
 
 class Method(enum.StrEnum):
@@ -28,11 +30,142 @@ class Method(enum.StrEnum):
 
 
 @dataclass(frozen=True, slots=True)
-class VoOptions:
-    """Tuning of the pipelines (defaults suit 320x240 to 1280x720 at 10-60 Hz). How each default
-    was chosen, with measurements: docs/estimation-log.md, "VoOptions: why each default".
+class PnpOptions:
+    """``stereo`` and ``rgbd-pnp``: PnP on the keyframe's 3D points.
 
     Attributes:
+        prior_gate_px, prior_min_fraction: rgbd-pnp skips RANSAC when this fraction of the tracks
+            lies within the gate (px) of the prediction (0: always RANSAC).
+        inliers: ``"ransac"`` or ``"rigidity"`` (stereo: max-clique of rigid pairs first).
+    """
+
+    prior_gate_px: float = 8.0
+    prior_min_fraction: float = 0.9
+    inliers: str = "ransac"
+
+    def __post_init__(self) -> None:
+        if self.inliers not in ("ransac", "rigidity"):
+            raise EstimationError(f"PnpOptions.inliers is {self.inliers!r}; use 'ransac' or 'rigidity'")
+        if self.prior_gate_px < 0 or not 0 < self.prior_min_fraction <= 1:
+            raise EstimationError(
+                f"PnpOptions.prior_gate_px={self.prior_gate_px}, prior_min_fraction={self.prior_min_fraction}; "
+                "use a distance >= 0 (0: off) and a fraction in (0, 1]"
+            )
+
+
+@dataclass(frozen=True, slots=True)
+class EssentialOptions:
+    """``rgbd-essential``: the essential matrix, metric scale and cheirality from depth.
+
+    Attributes:
+        threshold_px: epipolar (Sampson) inlier threshold, px.
+        min_parallax_px: solve by PnP below this median parallax, px.
+        cheirality: the pick of the four motions: ``"depth"`` or ``"opencv"``.
+        prior_gate_px, prior_min_fraction, prior_iterations: refine the prediction (Sampson LM)
+            instead of RANSAC when it explains this fraction of the tracks (gate 0: always RANSAC).
+        pnp_prior_gate_px: the PnP steps first try PnP from the prediction with this gate, px (0: off).
+    """
+
+    threshold_px: float = 1.0
+    min_parallax_px: float = 3.0
+    cheirality: str = "depth"
+    prior_gate_px: float = 2.0
+    prior_min_fraction: float = 0.9
+    prior_iterations: int = 1
+    pnp_prior_gate_px: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.cheirality not in ("opencv", "depth"):
+            raise EstimationError(f"EssentialOptions.cheirality is {self.cheirality!r}; use 'opencv' or 'depth'")
+        if (
+            self.prior_gate_px < 0
+            or self.pnp_prior_gate_px < 0
+            or not 0 < self.prior_min_fraction <= 1
+            or self.prior_iterations < 1
+        ):
+            raise EstimationError(
+                f"EssentialOptions.prior_gate_px={self.prior_gate_px}, pnp_prior_gate_px={self.pnp_prior_gate_px}, "
+                f"prior_min_fraction={self.prior_min_fraction}, prior_iterations={self.prior_iterations}; "
+                "use distances >= 0 (0: off), a fraction in (0, 1] and at least 1 iteration"
+            )
+
+
+@dataclass(frozen=True, slots=True)
+class KabschOptions:
+    """``rgbd-kabsch``: 3D-3D Kabsch on the depth of both frames.
+
+    Attributes:
+        threshold_m: inlier threshold at 1 m (grows with depth squared).
+        polish: polish the rigid fit like PnP's pose and fuse the depth.
+        first_batch: hypotheses in RANSAC's first batch (then 64 per batch).
+        prior_gate, prior_min_fraction: skip RANSAC when the prediction explains this fraction
+            of the pairs (gate in inlier thresholds; 0: always RANSAC).
+    """
+
+    threshold_m: float = 0.02
+    polish: bool = True
+    first_batch: int = 8
+    prior_gate: float = 2.0
+    prior_min_fraction: float = 0.9
+
+    def __post_init__(self) -> None:
+        if self.prior_gate < 0 or not 0 < self.prior_min_fraction <= 1:
+            raise EstimationError(
+                f"KabschOptions.prior_gate={self.prior_gate}, prior_min_fraction={self.prior_min_fraction}; "
+                "use a gate >= 0 (0: off) and a fraction in (0, 1]"
+            )
+        if self.first_batch < 1:
+            raise EstimationError(f"KabschOptions.first_batch is {self.first_batch}; use at least 1 (8 is typical)")
+
+
+@dataclass(frozen=True, slots=True)
+class FlowOptions:
+    """``flow``: optical-flow velocity from a reference frame.
+
+    Attributes:
+        threshold_px: RANSAC threshold, px of image motion since the reference.
+        robust_iters: Cauchy-reweighted refits of the velocity after RANSAC.
+        depth: on stereo: ``"stereo"`` (each point's depth) or ``"altitude"`` (one, looking down).
+        ref_px: the reference moves on once its points moved this far (median px; 0: always).
+        polish: polish the motion since the reference on its points' reprojection.
+        altitude_every: ``depth="altitude"``: recompute the altitude every N frames.
+    """
+
+    threshold_px: float = 1.0
+    robust_iters: int = 3
+    depth: str = "stereo"
+    ref_px: float = 15.0
+    polish: bool = True
+    altitude_every: int = 5
+
+    def __post_init__(self) -> None:
+        if self.depth not in ("altitude", "stereo"):
+            raise EstimationError(f"FlowOptions.depth is {self.depth!r}; use 'altitude' or 'stereo'")
+        if not self.ref_px >= 0:
+            raise EstimationError(
+                f"FlowOptions.ref_px is {self.ref_px}; use pixels >= 0 (0: track from the previous frame)"
+            )
+
+
+EstimatorOptions = PnpOptions | EssentialOptions | KabschOptions | FlowOptions
+"""The options object of one motion estimator."""
+
+_OPTIONS_OF: dict[Method, type[EstimatorOptions]] = {
+    Method.RGBD_PNP: PnpOptions,
+    Method.STEREO: PnpOptions,
+    Method.RGBD_ESSENTIAL: EssentialOptions,
+    Method.RGBD_KABSCH: KabschOptions,
+    Method.FLOW: FlowOptions,
+}
+
+
+@dataclass(frozen=True, slots=True)
+class VoOptions:
+    """Options shared by every method (front end, checks, keyframes), and the method's own.
+    How each default was chosen, with measurements: docs/estimation-log.md.
+
+    Attributes:
+        estimator: the method's options (:class:`PnpOptions`, ...; None: the method's defaults).
         max_features: corners kept per keyframe.
         cell_px: grid cell of the corner detector, px (0: from the image size and the budget).
         fast_threshold: FAST threshold (grey levels).
@@ -42,46 +175,29 @@ class VoOptions:
         stereo_win_px: LK window of the left-right disparity search, px (0: the tracking window).
         fb_max_px: forward-backward tolerance of tracks, px.
         klt_trust_prior_px: RGB-D: tracks within this of their prediction skip the backward check.
-        pnp_method: ``"iterative"``, ``"epnp"`` or ``"sqpnp"``: the fit on all inliers.
+        pnp_method: ``"iterative"``, ``"epnp"`` or ``"sqpnp"``: PnP's fit on all inliers.
         pnp_kernel: PnP RANSAC's minimal solver: None (``pnp_method``), ``"ap3p"`` or ``"p3p"``.
         reproj_px: PnP RANSAC and inlier threshold, px.
-        pnp_prior_gate_px, pnp_prior_min_fraction: rgbd-pnp skips RANSAC when this fraction of the
-            tracks lies within the gate (px) of the prediction (0: always RANSAC).
-        inliers: ``"ransac"`` or ``"rigidity"`` (stereo: max-clique of rigid pairs first).
-        kabsch_threshold_m: rgbd-kabsch inlier threshold at 1 m (grows with depth squared).
-        kabsch_polish: rgbd-kabsch: polish the rigid fit like PnP's pose and fuse the depth.
-        kabsch_first_batch: rgbd-kabsch: hypotheses in RANSAC's first batch (then 64 per batch).
-        kabsch_prior_gate, kabsch_prior_min_fraction: rgbd-kabsch skips RANSAC when the prediction
-            explains this fraction of the pairs (gate in inlier thresholds; 0: always RANSAC).
-        essential_threshold_px: epipolar (Sampson) inlier threshold, px.
-        essential_min_parallax_px: rgbd-essential solves by PnP below this median parallax, px.
-        essential_cheirality: rgbd-essential's pick of the four motions: ``"depth"`` or ``"opencv"``.
-        essential_prior_gate_px, essential_prior_min_fraction, essential_prior_iterations: rgbd-essential
-            refines the prediction (Sampson LM) instead of RANSAC when it explains this fraction.
-        essential_pnp_prior: rgbd-essential's PnP steps try the prior-guided PnP before RANSAC.
         min_inliers: fewer inliers -> the estimate is rejected (the frame is ``PREDICTED``).
         max_speed_m_s, max_rate_rad_s: sanity limits of one step (faster -> ``PREDICTED``).
         min_depth_m, max_depth_m: accepted depth range (stereo and depth images), m.
         init_min_depth_fraction: RGB-D: hold the start pose (``INIT``) until this fraction of the
             depth image is in range (0: start at once).
-        max_depth_baselines: stereo points farther than this many baselines are not used.
-        min_disparity_px: stereo points with a smaller disparity are not used, px.
+        max_depth_baselines: stereo points farther than this many baselines are not used (inf: all kept).
+        min_disparity_px: stereo points with a smaller disparity are not used, px (the matching noise floor).
         refine_with_depth: polish poses on the current frame's depth too (``motion.refine_pose``).
         fuse_depth: fuse each frame's depth of tracked points into their 3D estimates.
         stereo_fb_check: also check left-right stereo matches right-to-left.
+        stereo_offset: stereo: estimate the pair's disparity offset online (``estimation.stereo_offset``; off:
+            see docs/estimation-log.md).
         orb_fallback: match ORB against the keyframe when tracking fails (``FALLBACK``).
         keyframes: the keyframe policy (:class:`~estimation.keyframes.KeyframePolicy`).
         parallax_ref_width_px: rgbd-pnp/-essential on narrower images: parallax scaled to this width.
         ba_window: local bundle adjustment over this many keyframes (0: off).
-        flow_threshold_px: flow RANSAC threshold, px of image motion since the reference.
-        flow_ref_px: flow's reference moves on once its points moved this far (median px; 0: always).
-        flow_polish: flow: polish the motion since the reference on its points' reprojection.
-        flow_robust_iters: flow: Cauchy-reweighted refits of the velocity after RANSAC.
-        flow_depth: flow on stereo: ``"stereo"`` (each point's depth) or ``"altitude"`` (one, looking down).
-        altitude_every: flow, ``flow_depth="altitude"``: recompute the altitude every N frames.
         seed: RANSAC random seed (repeatable runs).
     """
 
+    estimator: EstimatorOptions | None = None
     max_features: int = 300
     cell_px: int = 0
     fast_threshold: int = 20
@@ -95,21 +211,6 @@ class VoOptions:
     pnp_method: str = "iterative"
     pnp_kernel: str | None = None
     reproj_px: float = 3.0
-    pnp_prior_gate_px: float = 8.0
-    pnp_prior_min_fraction: float = 0.9
-    inliers: str = "ransac"
-    kabsch_threshold_m: float = 0.02
-    kabsch_polish: bool = True
-    kabsch_first_batch: int = 8
-    kabsch_prior_gate: float = 2.0
-    kabsch_prior_min_fraction: float = 0.9
-    essential_threshold_px: float = 1.0
-    essential_min_parallax_px: float = 3.0
-    essential_cheirality: str = "depth"
-    essential_prior_gate_px: float = 2.0
-    essential_prior_min_fraction: float = 0.9
-    essential_prior_iterations: int = 1
-    essential_pnp_prior: bool = False
     min_inliers: int = 12
     max_speed_m_s: float = 40.0
     max_rate_rad_s: float = 8.0
@@ -121,55 +222,34 @@ class VoOptions:
     refine_with_depth: bool = True
     fuse_depth: bool = True
     stereo_fb_check: bool = False
+    stereo_offset: bool = False
     orb_fallback: bool = True
     keyframes: KeyframePolicy = field(default_factory=KeyframePolicy)
     parallax_ref_width_px: int = 640
     ba_window: int = 0
-    flow_threshold_px: float = 1.0
-    flow_robust_iters: int = 3
-    flow_depth: str = "stereo"
-    flow_ref_px: float = 15.0
-    flow_polish: bool = True
-    altitude_every: int = 5
     seed: int = 0
 
+    def estimator_options(self, method: Method) -> EstimatorOptions:
+        """The options of ``method``'s estimator: ``estimator`` when set, else that estimator's defaults.
+
+        Raises:
+            EstimationError: ``estimator`` belongs to another method.
+        """
+        want = _OPTIONS_OF[method]
+        if self.estimator is None:
+            return want()
+        if not isinstance(self.estimator, want):
+            raise EstimationError(
+                f"VoOptions.estimator is a {type(self.estimator).__name__} but method {method.value!r} "
+                f"takes {want.__name__}; pass {want.__name__}(...) or None"
+            )
+        return self.estimator
+
     def __post_init__(self) -> None:
-        if self.inliers not in ("ransac", "rigidity"):
-            raise EstimationError(f"VoOptions.inliers is {self.inliers!r}; use 'ransac' or 'rigidity'")
         if self.pnp_method not in ("iterative", "epnp", "sqpnp"):
             raise EstimationError(f"VoOptions.pnp_method is {self.pnp_method!r}; use iterative, epnp or sqpnp")
         if self.pnp_kernel not in (None, "p3p", "ap3p"):
             raise EstimationError(f"VoOptions.pnp_kernel is {self.pnp_kernel!r}; use 'ap3p', 'p3p' or None")
-        if self.flow_depth not in ("altitude", "stereo"):
-            raise EstimationError(f"VoOptions.flow_depth is {self.flow_depth!r}; use 'altitude' or 'stereo'")
-        if not self.flow_ref_px >= 0:
-            raise EstimationError(
-                f"VoOptions.flow_ref_px is {self.flow_ref_px}; use pixels >= 0 (0: track from the previous frame)"
-            )
-        if self.essential_cheirality not in ("opencv", "depth"):
-            raise EstimationError(
-                f"VoOptions.essential_cheirality is {self.essential_cheirality!r}; use 'opencv' or 'depth'"
-            )
-        if (
-            self.essential_prior_gate_px < 0
-            or not 0 < self.essential_prior_min_fraction <= 1
-            or self.essential_prior_iterations < 1
-        ):
-            raise EstimationError(
-                f"VoOptions.essential_prior_gate_px={self.essential_prior_gate_px}, "
-                f"essential_prior_min_fraction={self.essential_prior_min_fraction}, "
-                f"essential_prior_iterations={self.essential_prior_iterations}; use a distance >= 0 "
-                "(0: off), a fraction in (0, 1] and at least 1 iteration"
-            )
-        if self.kabsch_prior_gate < 0 or not 0 < self.kabsch_prior_min_fraction <= 1:
-            raise EstimationError(
-                f"VoOptions.kabsch_prior_gate={self.kabsch_prior_gate}, kabsch_prior_min_fraction="
-                f"{self.kabsch_prior_min_fraction}; use a gate >= 0 (0: off) and a fraction in (0, 1]"
-            )
-        if self.kabsch_first_batch < 1:
-            raise EstimationError(
-                f"VoOptions.kabsch_first_batch is {self.kabsch_first_batch}; use at least 1 (8 is typical)"
-            )
         if self.max_features < 20:
             raise EstimationError(f"VoOptions.max_features is {self.max_features}; use at least 20 (300 is typical)")
         if (
@@ -184,12 +264,8 @@ class VoOptions:
                 f"klt_back_levels={self.klt_back_levels}, klt_iters={self.klt_iters}; use a window "
                 ">= 5 px (0: automatic), levels >= 0 (None: automatic) and at least 1 iteration"
             )
-        if self.pnp_prior_gate_px < 0 or self.klt_trust_prior_px < 0 or not 0 < self.pnp_prior_min_fraction <= 1:
-            raise EstimationError(
-                f"VoOptions.pnp_prior_gate_px={self.pnp_prior_gate_px}, klt_trust_prior_px="
-                f"{self.klt_trust_prior_px}, pnp_prior_min_fraction={self.pnp_prior_min_fraction}; use "
-                "distances >= 0 (0: off) and a fraction in (0, 1]"
-            )
+        if self.klt_trust_prior_px < 0:
+            raise EstimationError(f"VoOptions.klt_trust_prior_px is {self.klt_trust_prior_px}; use >= 0 (0: off)")
         if not 0.0 <= self.init_min_depth_fraction <= 1.0:
             raise EstimationError(
                 f"VoOptions.init_min_depth_fraction is {self.init_min_depth_fraction}; use a fraction in [0, 1]"

@@ -18,17 +18,29 @@ stamps that are recorded (nanoseconds since the Unix epoch).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import heapq
 import itertools
 import threading
 import time
+from collections.abc import Iterator
 from typing import Protocol, runtime_checkable
 
 from flightkit.errors import SimError
 
+STAMP_DEVICE = "device"
+"""A capture stamp that is the device's own capture time (frame metadata, buffer time, mocap frame time)."""
+STAMP_HOST = "host"
+"""A capture stamp that is the host's time when the driver handed the sample over (the device gives none)."""
+STAMP_SOURCES = ("", STAMP_DEVICE, STAMP_HOST)
+"""Bus attachment code -> stamp source (``""``: not said, e.g. a foreign or older publisher)."""
+
 __all__ = [
     "LATE_SLEEPER_LEAD_S",
     "LATE_SLEEPER_PATIENCE_WALL_S",
+    "STAMP_DEVICE",
+    "STAMP_HOST",
+    "STAMP_SOURCES",
     "ONE_PROCESS_WALL_STEP_S",
     "Clock",
     "LockstepClock",
@@ -77,6 +89,11 @@ class Clock(Protocol):
         """Block the calling thread for ``duration_s`` of this clock's time."""
         ...
 
+    def busy(self, budget_s: float) -> contextlib.AbstractContextManager[None]:
+        """Work (rendering a frame, estimating one) that takes at most ``budget_s`` of this
+        clock's time however long the host takes: a simulated clock waits for it."""
+        ...
+
 
 class WallClock:
     """Real time."""
@@ -96,6 +113,10 @@ class WallClock:
 
     def sleep_blocking(self, duration_s: float) -> None:
         time.sleep(max(0.0, duration_s))
+
+    def busy(self, budget_s: float) -> contextlib.AbstractContextManager[None]:
+        """Real work takes what it takes: no effect on wall time."""
+        return contextlib.nullcontext()
 
     def __repr__(self) -> str:
         return "WallClock()"
@@ -249,6 +270,20 @@ class SimClock:
         finally:
             sleeper.done = True
 
+    @contextlib.contextmanager
+    def busy(self, budget_s: float) -> Iterator[None]:
+        """On a stall-limited clock, hold time at ``budget_s`` past now until the block ends (for
+        at most ``LATE_SLEEPER_PATIENCE_WALL_S`` of wall time): the simulated computer keeps up
+        whatever the host's load. No effect when time follows the wall clock exactly."""
+        if self._max_wall_step_s is None:
+            yield
+            return
+        sleeper = self._sleeper(self.monotonic_s() + max(0.0, budget_s) - self._late_lead_s)
+        try:
+            yield
+        finally:
+            sleeper.done = True
+
     def __repr__(self) -> str:
         limit = "" if self._max_wall_step_s is None else f", max_wall_step_s={self._max_wall_step_s:g}"
         return f"SimClock(speed={self._speed:g}{limit})"
@@ -306,6 +341,10 @@ class LockstepClock:
         with self._cond:
             deadline = self._now_s + max(0.0, duration_s)
             self._cond.wait_for(lambda: self._now_s >= deadline)
+
+    def busy(self, budget_s: float) -> contextlib.AbstractContextManager[None]:
+        """Time moves only when advanced: work takes no time."""
+        return contextlib.nullcontext()
 
     def wait_until(self, deadline_s: float, timeout_wall_s: float) -> bool:
         """Block until time reaches ``deadline_s`` (True) or ``timeout_wall_s`` of wall time

@@ -230,6 +230,10 @@ class MocapConfig:
     options: dict[str, str] = setting(default_factory=dict, help="extra motioncapture options (strings)")
     T_world_mocap: TransformConfig = setting(default_factory=TransformConfig, help="mocap frame in the world")
     stale_after_s: float = setting(0.2, min=0.001, max=10.0, help="pose age that counts as stale")
+    predict_latency_ms: float = setting(
+        0.0, min=0.0, max=200.0,
+        help="known mocap latency: the runner's controller tracks the pose predicted this far ahead (0: off)",
+    )
 
 
 @dataclass(frozen=True, slots=True)
@@ -283,6 +287,10 @@ class SimConfig:
     )
     true_T_body_camera: TransformConfig | None = setting(
         None, help="where the simulated camera really is mounted (default: camera.T_body_camera)"
+    )
+    autopilot_params: dict[str, float] = setting(
+        default_factory=dict,
+        help="parameters of the simulated autopilot over the lab set-up of docs/hardware.md, e.g. FS_GCS_ENABLE = 0",
     )
 
 
@@ -461,7 +469,10 @@ def _convert(value: Any, tp: Any, meta: Mapping[str, Any], path: str, key: str) 
     if origin is dict:
         if not isinstance(value, Mapping):
             raise ConfigError(path, key, f"expected a table, got {value!r}", f"write it as [{key}]", value)
-        return {str(k): str(v) for k, v in value.items()}
+        val_tp = typing.get_args(tp)[1] if typing.get_args(tp) else str
+        if val_tp is str:
+            return {str(k): str(v) for k, v in value.items()}
+        return {str(k): _convert(v, val_tp, {}, path, f"{key}.{k}") for k, v in value.items()}
 
     if isinstance(tp, type) and issubclass(tp, enum.Enum):
         for member in tp:

@@ -23,28 +23,7 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption("--hardware", action="store_true", default=False, help="run tests that need real hardware")
 
 
-# Modules retried up to twice (pytest-rerunfailures) because what they measure is the machine's
-# spare CPU, not just our code. `-ra` lists every rerun, so a flaky test stays visible, and a
-# real fault fails all three attempts. Set FLIGHTKIT_NO_RERUN=1 to run them once (to hunt flakes).
-# Everything else must pass on its own: waits are on state with timeouts, and fault checks allow
-# the one-cycle `mocap_stale` holds a loaded machine produces but still require the fault's own
-# reaction.
-TIMED_MODULES = (
-    # flies at speed 1 on live VO: the camera renders and the VO runs in real (CPU) time, and the
-    # checked figures (frames processed, vision rate, latency-driven estimate error) are throughput
-    "test_closed_loop",
-)
-
-
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    no_rerun = os.environ.get("FLIGHTKIT_NO_RERUN", "") not in ("", "0")
-    if no_rerun or not config.pluginmanager.hasplugin("rerunfailures"):  # also: -p no:rerunfailures
-        retry = None
-    else:
-        retry = pytest.mark.flaky(reruns=2, reruns_delay=1)
-    for item in items:
-        if retry is not None and item.module is not None and item.module.__name__.rsplit(".", 1)[-1] in TIMED_MODULES:
-            item.add_marker(retry)
     if config.getoption("--hardware"):
         return
     skip = pytest.mark.skip(reason="needs real hardware; run with --hardware")

@@ -27,9 +27,13 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import numpy as np
+import numpy.typing as npt
+
+from flightkit.calibration.latency import DEFAULT_STAGES, latency_stats, predict_pose, velocity_from_poses
 from flightkit.clock import Clock
 from flightkit.errors import LinkTimeout, MocapBodyMissing
-from flightkit.frames import Vec3Tuple
+from flightkit.frames import Transform, Vec3Tuple
 from flightkit.link.base import FlightMode, VehicleLink, VelocitySetpoint
 from flightkit.mocap.base import MocapPose, MocapSource
 from trajectories.base import Pattern, Reference, with_acceleration
@@ -95,7 +99,8 @@ class LogRow:
         ref: the reference it tracked. pos_m / yaw_rad: the measured pose (world; None / NaN
         without one). mocap_age_s: age of that pose (-1 without one). setpoint: what was sent
         (or would have been, on a phase that only watches). err_m: tracking error (NaN when
-        not measured). cycle_s / cycle_cpu_s: wall and CPU time of the cycle.
+        not measured). cycle_s / cycle_cpu_s: wall and CPU time of the cycle. stages_s: the
+        pose's latency per :data:`~trajectories.flightlog.LATENCY_STAGES` stage (NaN when not known).
     """
 
     t_s: float
@@ -111,6 +116,7 @@ class LogRow:
     err_m: float
     cycle_s: float
     cycle_cpu_s: float
+    stages_s: tuple[float, float, float] = (math.nan, math.nan, math.nan)
 
     def values(self) -> tuple[object, ...]:
         """The row in :data:`~trajectories.flightlog.COLUMNS` order."""
@@ -134,6 +140,7 @@ class LogRow:
             sp.yaw_rate_rad_s if sp.yaw_rate_rad_s is not None else math.nan,
             self.err_m,
             self.cycle_s,
+            *self.stages_s,
         )
 
 
@@ -175,6 +182,9 @@ class ControlLoop:
         safety: the supervisor's configuration. rate_hz: the least control rate.
         log: flight log (None: none). on_status: live status callback. summary: where
         phases, faults and timing figures go.
+        predict_latency_s: a known mocap latency: the controller tracks the pose predicted this
+            far (plus the pose's age, at most 50 ms) ahead with the measured velocity; the
+            supervisor keeps the measured pose. 0 (the default) predicts nothing.
     """
 
     def __init__(
@@ -192,9 +202,11 @@ class ControlLoop:
         summary: FlightSummary,
         log: FlightLog | None = None,
         on_status: Callable[[Status], None] | None = None,
+        predict_latency_s: float = 0.0,
     ) -> None:
         self.link = link
         self.mocap = mocap
+        self.predict_latency_s = predict_latency_s
         self.body = body
         self.clock = clock
         self.control_mode = control_mode
@@ -213,14 +225,16 @@ class ControlLoop:
         self.cycle_s: list[float] = []  # wall time per control cycle
         self.cycle_cpu_s: list[float] = []  # this thread's CPU time per cycle (no waits, no steal)
         self.latency_s: list[float] = []  # mocap sample received -> setpoint computed from it sent
+        self._chain_ns: dict[str, list[float]] = {name: [] for name in DEFAULT_STAGES}  # per sample flown on
         self._t0 = clock.monotonic_s()
         self._active: set[FaultKind] = set()
         self._last_phase = ""
         self._last_status_s = -math.inf
         self._last_valid: MocapPose | None = None
         self._yaw_cache: tuple[int, float] = (-1, 0.0)
-        self._prev_for_speed: tuple[float, Vec3Tuple] | None = None
+        self._prev_for_speed: tuple[float, Vec3Tuple, Transform] | None = None
         self._speed_m_s = math.nan
+        self._motion: tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]] | None = None  # (v world, w body)
         self._new_pose = asyncio.Event()
         self._pose_task: asyncio.Task[None] | None = None
         self._last_err = math.nan
@@ -258,6 +272,27 @@ class ControlLoop:
             return None, math.inf
         return lv, max(0.0, now_s - lv.received_s)
 
+    def _predicted(self, pose: MocapPose | None, age_s: float) -> tuple[Vec3Tuple, float] | None:
+        """The pose moved ``predict_latency_s`` (plus its age, at most 50 ms) ahead at the measured
+        linear and angular velocity: (position, yaw); None when not predicting."""
+        if pose is None or self.predict_latency_s <= 0.0 or self._motion is None or not math.isfinite(age_s):
+            return None
+        T = predict_pose(pose.T_world_body, *self._motion, self.predict_latency_s + min(age_s, 0.05))  # noqa: N806
+        t = T.translation
+        return (float(t[0]), float(t[1]), float(t[2])), T.yaw_rad
+
+    def _stages(self, p: MocapPose) -> tuple[float, float, float]:
+        """Record the pose's stamps along the chain (setpoint: now) and return its stage latencies
+        (s, :data:`~trajectories.flightlog.LATENCY_STAGES`; NaN where the source does not say).
+        A source in this process has no bus: its hand-over counts as the bus stamp."""
+        nan = math.nan
+        bus = float(p.bus_ns or p.received_ns or nan)
+        runner = float(p.received_ns or nan)
+        stamps = (float(p.stamp_ns), bus, runner, float(self.clock.time_ns()))
+        for name, value in zip(DEFAULT_STAGES, stamps, strict=True):
+            self._chain_ns[name].append(value)
+        return (bus - stamps[0]) * 1e-9, (runner - bus) * 1e-9, (stamps[3] - runner) * 1e-9
+
     def _update_speed(self, p: MocapPose) -> None:
         t = p.stamp_ns * 1e-9
         pos = _position(p)
@@ -265,7 +300,9 @@ class ControlLoop:
         if prev is None or t - prev[0] >= 0.05:  # 20 Hz finite difference: robust to mocap jitter
             if prev is not None and t > prev[0]:
                 self._speed_m_s = math.dist(pos, prev[1]) / (t - prev[0])
-            self._prev_for_speed = (t, pos)
+                if self.predict_latency_s > 0.0:
+                    self._motion = velocity_from_poses(prev[2], p.T_world_body, t - prev[0])
+            self._prev_for_speed = (t, pos, p.T_world_body)
 
     def _yaw(self, p: MocapPose) -> float:
         if self._yaw_cache[0] != p.stamp_ns:
@@ -406,7 +443,8 @@ class ControlLoop:
         if action > Action.HOLD and action <= ph.tolerate:
             action = Action.HOLD if any(f.action is Action.HOLD for f in decision.faults) else Action.CONTINUE
         err = math.nan
-        if action is Action.CONTINUE and pos is not None:
+        ctl_pos, ctl_yaw = self._predicted(pose, age) or (pos, yaw)
+        if action is Action.CONTINUE and ctl_pos is not None:
             if not ph.started:
                 ph.started = True
                 self.phase_started_s = now
@@ -417,11 +455,11 @@ class ControlLoop:
             ref = pattern.reference(ph.t_pattern_s)
             if ph.controller.config.setpoint is SetpointKind.PVA:
                 ref = with_acceleration(pattern, ref)
-            out = ph.controller.step(ref, pos, yaw, dt)
+            out = ph.controller.step(ref, ctl_pos, ctl_yaw, dt)
             sp = self._bounded_position(out.setpoint, ph.floor_m)
             err = out.error_norm_m
             if ph.floor_m is not None and ref.pos_m[2] < ph.floor_m:
-                err = math.dist((ref.pos_m[0], ref.pos_m[1], ph.floor_m), pos)
+                err = math.dist((ref.pos_m[0], ref.pos_m[1], ph.floor_m), ctl_pos)
         elif action is Action.HOLD or (action is Action.CONTINUE and pos is None):
             sp = self.controller.hold()
             if pos is not None:
@@ -435,8 +473,10 @@ class ControlLoop:
         cycle = time.perf_counter() - c0
         self.cycle_cpu_s.append(cycle_cpu)
         self.cycle_s.append(cycle)
-        if ph.send and pos is not None and math.isfinite(age):
+        stages = (math.nan, math.nan, math.nan)
+        if ph.send and pose is not None and math.isfinite(age):
             self.latency_s.append(age + cycle)
+            stages = self._stages(pose)
         if not math.isnan(err) and ph.send:
             ph.stats.add(err)
             self._last_err = err
@@ -454,6 +494,7 @@ class ControlLoop:
             err,
             cycle,
             cycle_cpu,
+            stages,
         )
         if self.log is not None:
             self.log.row(row.values())
@@ -543,6 +584,9 @@ class ControlLoop:
             summary.loop_rate_hz = self.rate_estimate()
         if self.latency_s:
             summary.latency_p50_ms, summary.latency_p99_ms = _p50_p99_ms(self.latency_s)
+        if self._chain_ns["capture"]:
+            chain = latency_stats(self._chain_ns)
+            summary.stage_latency_ms = {st.name: (st.p50_ms, st.p99_ms) for st in chain.stages if st.count}
 
     async def close(self) -> None:
         """Stop watching the mocap stream; idempotent."""

@@ -25,7 +25,20 @@ import numpy.typing as npt
 from flightkit.errors import DatasetError, FlightkitError
 from trajectories.supervisor import Fault
 
-__all__ = ["COLUMNS", "FlightLog", "FlightLogData", "FlightSummary", "PhaseStats", "read_flight_log"]
+__all__ = [
+    "COLUMNS",
+    "LATENCY_STAGES",
+    "FlightLog",
+    "FlightLogData",
+    "FlightSummary",
+    "PhaseStats",
+    "read_flight_log",
+]
+
+LATENCY_STAGES = ("capture_to_bus", "bus_to_runner", "runner_to_setpoint")
+"""The stages of a mocap sample's way to the setpoint computed from it: its capture stamp to the
+bus (or to its arrival here, for a source in this process), the bus to this process, and its
+arrival to the setpoint leaving (its age at the cycle plus the cycle)."""
 
 COLUMNS = (
     "t_s", "stamp_ns", "phase", "lap", "action",
@@ -33,6 +46,7 @@ COLUMNS = (
     "pos_x_m", "pos_y_m", "pos_z_m", "yaw_rad", "mocap_age_s",
     "sp_frame", "sp_vx_m_s", "sp_vy_m_s", "sp_vz_m_s", "sp_yaw_rad", "sp_yaw_rate_rad_s",
     "err_m", "cycle_s",
+    "capture_to_bus_s", "bus_to_runner_s", "runner_to_setpoint_s",
 )  # fmt: skip
 _MAGIC = "# flightkit flight log v1 "
 
@@ -97,7 +111,11 @@ class FlightSummary:
             time spent waiting for the GIL, the scheduler or a hypervisor that took the CPU.
         latency_p50_ms / latency_p99_ms: from a mocap sample reaching this process to the setpoint
             computed from it leaving (the sample's age at the cycle plus the cycle), per cycle.
+        stage_latency_ms: (p50, p99) per :data:`LATENCY_STAGES` stage with samples, and ``total``
+            (capture stamp to setpoint).
         log_path: the flight log file (None when not logging).
+        companion_loss: what the autopilot would have done had flightkit stopped (the preflight's
+            one line, from its failsafe parameters; empty when not checked).
     """
 
     plan: str
@@ -113,7 +131,9 @@ class FlightSummary:
     cycle_cpu_p99_ms: float = math.nan
     latency_p50_ms: float = math.nan
     latency_p99_ms: float = math.nan
+    stage_latency_ms: dict[str, tuple[float, float]] = field(default_factory=dict)
     log_path: str | None = None
+    companion_loss: str = ""
 
     def phase(self, name: str) -> PhaseStats:
         """The stats of phase ``name`` (KeyError if it was not flown)."""
@@ -139,9 +159,11 @@ class FlightSummary:
             "cycle_cpu_p99_ms": _r(self.cycle_cpu_p99_ms, 4),
             "latency_p50_ms": _r(self.latency_p50_ms, 3),
             "latency_p99_ms": _r(self.latency_p99_ms, 3),
+            "stage_latency_ms": {k: {"p50": _r(v[0], 3), "p99": _r(v[1], 3)} for k, v in self.stage_latency_ms.items()},
             "phases": [p.to_dict() for p in self.phases],
             "faults": [f.to_dict() for f in self.faults],
             "log_path": self.log_path,
+            "companion_loss": self.companion_loss,
         }
 
     def to_json(self) -> str:
@@ -158,6 +180,11 @@ class FlightSummary:
             lines.append(
                 f"  mocap sample to setpoint: p50 {self.latency_p50_ms:.1f} ms, p99 {self.latency_p99_ms:.1f} ms"
             )
+        if self.stage_latency_ms:
+            stages = self.stage_latency_ms.items()
+            lines.append("  latency per stage, p50 / p99 ms: " + ", ".join(
+                f"{name} {p50:.1f} / {p99:.1f}" for name, (p50, p99) in stages
+            ))
         lines.append(f"  {'phase':<10} {'time s':>8} {'RMS err m':>10} {'max err m':>10}")
         for p in self.phases:
             lines.append(f"  {p.name:<10} {p.duration_s:>8.1f} {p.rms_error_m:>10.4f} {p.max_error_m:>10.4f}")
@@ -166,6 +193,8 @@ class FlightSummary:
             lines.extend(f"    t={f.time_s:7.2f} s  {f.kind.value:<18} {f.message}" for f in self.faults)
         else:
             lines.append("  faults: none")
+        if self.companion_loss:
+            lines.append(f"  {self.companion_loss}")
         if self.log_path:
             lines.append(f"  log: {self.log_path}")
         return "\n".join(lines)

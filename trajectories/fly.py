@@ -95,6 +95,7 @@ async def fly_plan(
             log=log,
             on_status=on_status,
             name=plan.name,
+            predict_latency_s=lab.mocap.predict_latency_ms / 1000.0,
         )
         sig_ctx = runner.signals_land() if handle_signals else contextlib.nullcontext()
         try:

@@ -367,6 +367,14 @@ class Plan:
             safety=load_section(SafetyConfig, safe, path=where, prefix="safety"),
         )
 
+    def with_safety(self, **keys: Any) -> Plan:
+        """A copy with some ``[safety]`` keys set as if the plan's file had them (so they also win
+        over the lab's ``[safety]``), e.g. ``plan.with_safety(allow_hover_on_companion_loss=True)``."""
+        tables = None
+        if self.tables is not None:
+            tables = {**self.tables, "safety": {**self.tables.get("safety", {}), **keys}}
+        return dataclasses.replace(self, safety=dataclasses.replace(self.safety, **keys), tables=tables)
+
     def with_changes(self, **sections: Any) -> Plan:
         """A copy with some sections replaced, e.g. ``plan.with_changes(controller=cfg)``."""
         return dataclasses.replace(self, **sections)

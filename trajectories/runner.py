@@ -30,7 +30,7 @@ from typing import Any
 from flightkit.clock import Clock
 from flightkit.errors import CommandRejected, LinkError, LinkTimeout, MocapError, PlanError, SafetyAbort
 from flightkit.frames import Vec3Tuple
-from flightkit.link.base import LandedState, VehicleLink
+from flightkit.link.base import LandedState, VehicleLink, read_companion_loss
 from flightkit.mocap.base import MocapSource
 from trajectories.base import Pattern, PiecewisePattern, Reference, Turn
 from trajectories.circle import Circle
@@ -90,6 +90,7 @@ class FlightRunner:
         log: flight log to write each cycle to (None: no log).
         on_status: called with a :class:`Status` about 5 times a second (from the event loop).
         name: plan name for the summary.
+        predict_latency_s: see :class:`~trajectories.control_loop.ControlLoop`.
     """
 
     def __init__(
@@ -105,6 +106,7 @@ class FlightRunner:
         log: FlightLog | None = None,
         on_status: Callable[[Status], None] | None = None,
         name: str = "flight",
+        predict_latency_s: float = 0.0,
     ) -> None:
         self.link = link
         self.clock = clock
@@ -127,6 +129,7 @@ class FlightRunner:
             summary=self.summary,
             log=log,
             on_status=on_status,
+            predict_latency_s=predict_latency_s,
         )
         self.reactor = FaultReactor(
             self.loop, safety=self.safety, landed_timeout_s=self.settings.landed_timeout_s, land=self._controlled_land
@@ -205,9 +208,29 @@ class FlightRunner:
             self.safety, loop.body, tuple(loop.mocap.bodies()), pos is not None, self.link.telemetry, pos
         )
         problems += stream
+        problems += await self._companion_loss_problems()
         if problems:
             raise SafetyAbort("preflight", "preflight failed: " + "; ".join(problems))
         logger.info("preflight ok: body %r at %s", loop.body, pos)
+
+    async def _companion_loss_problems(self) -> list[str]:
+        """Read the parameters that decide what the autopilot does if flightkit stops (the
+        firmware's traits name them), log that in one line and keep it in the summary; a reason
+        not to arm when it would hover armed until the battery runs out, unless
+        ``allow_hover_on_companion_loss``."""
+        verdict = await read_companion_loss(self.link)
+        self.summary.companion_loss = verdict.summary
+        if not verdict.hovers:
+            logger.info("%s", verdict.summary)
+            return []
+        if self.safety.allow_hover_on_companion_loss:
+            logger.warning("%s; arming anyway ([safety] allow_hover_on_companion_loss)", verdict.summary)
+            return []
+        logger.warning("%s", verdict.summary)
+        return [
+            f"{verdict.reason}; or accept it with [safety] allow_hover_on_companion_loss = true "
+            "(flightkit fly --allow-hover-on-companion-loss)"
+        ]
 
     async def _watch_mocap_stream(self) -> list[str]:
         """Watch the body's poses for ``preflight_mocap_window_s``: what breaks the rate, age and

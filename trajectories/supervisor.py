@@ -190,6 +190,11 @@ class SafetyConfig:
     preflight_mocap_max_jitter_ms: float = setting(
         200.0, min=0.0, max=10_000.0, help="refuse to arm when the p99 interval jitter is larger (0 = off)"
     )
+    allow_hover_on_companion_loss: bool = setting(
+        False,
+        help="arm even though the autopilot's settings make it hover armed until the battery runs out "
+        "if flightkit stops (docs/safety.md)",
+    )
 
     @staticmethod
     def _check(obj: SafetyConfig, path: str, key: str) -> None:

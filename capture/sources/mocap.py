@@ -28,7 +28,7 @@ import zenoh
 
 from flightkit.bus.keys import Keys
 from flightkit.bus.streams import PosePublisher
-from flightkit.clock import Clock
+from flightkit.clock import STAMP_DEVICE, STAMP_HOST, Clock
 from flightkit.errors import BusError, CaptureError
 from flightkit.frames import WorldFrames
 from flightkit.mocap.base import MocapPose, MocapSource
@@ -88,6 +88,7 @@ class MocapBridge:
         self.source = source
         self._only = set(bodies) if bodies else None
         self._pubs: dict[str, PosePublisher | None] = {}
+        self._said_host_stamps = False
         self.published = 0
         self.per_body: dict[str, int] = {}
         self.lost_published = 0
@@ -100,9 +101,15 @@ class MocapBridge:
         if body in self._pubs:
             return self._pubs[body]
         pub: PosePublisher | None = None
+        stamp_source = getattr(self.source, "stamp_source", STAMP_HOST)
         try:
-            pub = PosePublisher(self._session, self.keys, body)
+            pub = PosePublisher(self._session, self.keys, body, clock=getattr(self.source, "clock", None),
+                                stamp_source=stamp_source)
             logger.info("bridging mocap body %r to %s", body, pub.key)
+            if stamp_source != STAMP_DEVICE and not self._said_host_stamps:
+                self._said_host_stamps = True
+                logger.warning("mocap source %s gives no frame time: poses are stamped on arrival here "
+                               "(recorded as capture_stamp=host)", type(self.source).__name__)
         except BusError as exc:
             logger.warning("not bridging mocap body %r: %s", body, exc)
         self._pubs[body] = pub

@@ -12,8 +12,11 @@ file. A device delivers at its own rate (``grab`` blocks until the next frame); 
 paced at its frame rate on the injected clock (so a :class:`~flightkit.clock.SimClock`
 plays it faster) and ends at its last frame (or loops).
 
-Stamps: ``clock.time_ns()`` right after ``grab()`` returns, i.e. when the frame reached us
-(the V4L2 buffer time is not exposed by OpenCV).
+Stamps: a live V4L2 device's buffer time (OpenCV's ``CAP_PROP_POS_MSEC`` on the V4L2 backend
+is the kernel's ``CLOCK_MONOTONIC`` stamp of the buffer), moved onto the epoch by
+:func:`v4l2_buffer_stamp_ns` (``capture_stamp=device``); otherwise (a file, another backend, or
+a buffer time that is not plausible) ``clock.time_ns()`` right after ``grab()`` returns, i.e.
+when the frame reached us (``host``, said once in the log).
 
 Calibration: the video-dataset format (:mod:`flightkit.datasets.video`: JSON or OpenCV
 YAML with fx, fy, cx, cy, width, height, dist), found beside a video file or given
@@ -27,6 +30,7 @@ from __future__ import annotations
 
 import logging
 import os
+import time
 from pathlib import Path
 from typing import Any, cast
 
@@ -40,10 +44,28 @@ from flightkit.bus.keys import Keys
 from flightkit.bus.msgs import CameraInfo, CompressedImage, Header
 from flightkit.bus.pubsub import BusPublisher
 from flightkit.bus.streams import CameraModel, CameraStream, has_subscribers, optical_frame_id
-from flightkit.clock import Clock
+from flightkit.clock import STAMP_DEVICE, STAMP_HOST, Clock
 from flightkit.errors import CaptureError, DatasetError
 
-__all__ = ["COLOR_FORMATS", "OpenCVCameraPublisher", "camera_model_from_calibration", "parse_device"]
+__all__ = [
+    "COLOR_FORMATS",
+    "OpenCVCameraPublisher",
+    "camera_model_from_calibration",
+    "parse_device",
+    "v4l2_buffer_stamp_ns",
+]
+
+_MAX_BUFFER_AGE_NS = 1_000_000_000  # a buffer stamp older than this (or in the future) is not believed
+
+
+def v4l2_buffer_stamp_ns(buffer_ms: float, now_ns: int, monotonic_now_ns: int) -> int | None:
+    """A V4L2 buffer time (ms on ``CLOCK_MONOTONIC``) as ns since the epoch, given the epoch and
+    monotonic times now; None when it is not a plausible capture time (0, ahead of now, or more
+    than a second old: the driver stamps another clock, or gives none)."""
+    age_ns = monotonic_now_ns - round(buffer_ms * 1e6)
+    if buffer_ms <= 0.0 or not 0 <= age_ns <= _MAX_BUFFER_AGE_NS:
+        return None
+    return now_ns - age_ns
 
 logger = logging.getLogger(__name__)
 
@@ -98,7 +120,7 @@ class _JpegStream:
     """JPEG-only publishing: image/compressed + camera_info (no raw image)."""
 
     def __init__(
-        self, session: zenoh.Session, keys: Keys, name: str, model: CameraModel, quality: int
+        self, session: zenoh.Session, keys: Keys, name: str, model: CameraModel, quality: int, clock: Clock
     ) -> None:
         self.model = model
         self.frame_id = optical_frame_id(keys, name)
@@ -106,12 +128,20 @@ class _JpegStream:
         self.info_key = keys.camera_info(name)
         self._quality = quality
         self._jpeg = BusPublisher(
-            session, self.image_key, CompressedImage, reliable=False, drop_when_congested=True
+            session, self.image_key, CompressedImage, reliable=False, drop_when_congested=True, clock=clock
         )
         self._info = BusPublisher(
-            session, self.info_key, CameraInfo, reliable=True, drop_when_congested=False
+            session, self.info_key, CameraInfo, reliable=True, drop_when_congested=False, clock=clock
         )
         self._buf = bytearray()
+
+    @property
+    def stamp_source(self) -> str:
+        return self._jpeg.stamp_source
+
+    @stamp_source.setter
+    def stamp_source(self, source: str) -> None:
+        self._jpeg.stamp_source = self._info.stamp_source = source
 
     def publish(self, stamp_ns: int, bgr: npt.NDArray[Any]) -> int:
         ok, jpg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, self._quality])
@@ -210,17 +240,19 @@ class OpenCVCameraPublisher(SourceThread):
         self._raw: CameraStream | None = None
         self._jpeg: _JpegStream | None = None
         if color_format == "jpeg":
-            self._jpeg = _JpegStream(session, keys, name, model, jpeg_quality)
+            self._jpeg = _JpegStream(session, keys, name, model, jpeg_quality, clock)
             self.image_key = self._jpeg.image_key
             self.info_key = self._jpeg.info_key
         else:
             self._raw = CameraStream(
-                session, keys, name, model, color_format, jpeg_quality=jpeg_quality if jpeg_quality > 0 else 0
+                session, keys, name, model, color_format, jpeg_quality=jpeg_quality if jpeg_quality > 0 else 0,
+                clock=clock,
             )
             self.image_key = self._raw.image_key
             self.info_key = self._raw.info_key
         self._rgb: npt.NDArray[np.uint8] | None = None
         self._frame: npt.NDArray[np.uint8] | None = None
+        self._stamp_source = ""  # device or host, once the first frame said
 
     @property
     def keys(self) -> list[str]:
@@ -301,6 +333,14 @@ class OpenCVCameraPublisher(SourceThread):
 
     def _handle_grab(self, cap: cv2.VideoCapture) -> None:
         stamp_ns = self.clock.time_ns()
+        if self.live:
+            device_ns = None
+            if cap.getBackendName() == "V4L2":
+                device_ns = v4l2_buffer_stamp_ns(cap.get(cv2.CAP_PROP_POS_MSEC), stamp_ns, time.monotonic_ns())
+            self._note_stamp_source(STAMP_HOST if device_ns is None else STAMP_DEVICE)
+            stamp_ns = device_ns or stamp_ns
+        elif not self._stamp_source:
+            self._note_stamp_source(STAMP_HOST)
         frame = self._retrieve(cap)
         if frame is None:
             self.frames_lost += 1
@@ -351,6 +391,17 @@ class OpenCVCameraPublisher(SourceThread):
         finally:
             if cap is not None:
                 cap.release()
+
+    def _note_stamp_source(self, source: str) -> None:
+        if source == self._stamp_source:
+            return
+        self._stamp_source = source
+        if self._raw is not None:
+            self._raw.stamp_source = source
+        if self._jpeg is not None:
+            self._jpeg.stamp_source = source
+        if source == STAMP_HOST:
+            logger.info("camera %s gives no capture time with its frames; stamping them on arrival", self.device)
 
     def _run_loop(self) -> None:
         if self.live:

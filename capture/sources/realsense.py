@@ -15,8 +15,9 @@ count: 0.001 on most D4xx, 0.0001 on some presets) is converted to millimetres, 
 the bus's 16UC1 depth; counts beyond 65.535 m and invalid (0) pixels stay 0.
 
 Stamps: the frameset's timestamp when the camera clock is the global time domain (the
-librealsense default on D4xx maps the hardware clock into the host clock), otherwise the
-injected clock at the moment the frameset arrived.
+librealsense default on D4xx maps the hardware clock into the host clock: the device's capture
+time, ``capture_stamp=device`` on the bus and in a recording), otherwise the injected clock at
+the moment the frameset arrived (``host``; said once in the log).
 
 The pure parts (:func:`camera_model_from_intrinsics`, :func:`depth_to_mm`) need no package
 and are what the unit tests cover; the device loop needs the package and a camera.
@@ -36,7 +37,7 @@ import zenoh
 from capture.sources._runner import SourceThread
 from flightkit.bus.keys import Keys
 from flightkit.bus.streams import CameraModel, CameraStream, optical_frame_id
-from flightkit.clock import Clock
+from flightkit.clock import STAMP_DEVICE, STAMP_HOST, Clock
 from flightkit.errors import CaptureError
 
 __all__ = [
@@ -173,6 +174,7 @@ class RealSensePublisher(SourceThread):
         self.retry_s = retry_s
         self.frame_timeout_s = frame_timeout_s
         self.color: CameraStream | None = None
+        self._stamp_source = ""  # device or host, once the first frameset said
         self.depth: CameraStream | None = None
         self.model: CameraModel | None = None
         self.depth_scale_m = 0.001
@@ -201,7 +203,7 @@ class RealSensePublisher(SourceThread):
         if self.model is None:  # publishers are declared once, with the first profile's calibration
             self.model = model
             self.color = CameraStream(
-                self._session, self._keys, "color", model, "rgb8", jpeg_quality=self.jpeg_quality
+                self._session, self._keys, "color", model, "rgb8", jpeg_quality=self.jpeg_quality, clock=self.clock
             )
             if self.depth_enabled:
                 self.depth = CameraStream(
@@ -211,6 +213,7 @@ class RealSensePublisher(SourceThread):
                     model,
                     "16UC1",
                     frame_id=optical_frame_id(self._keys, "color"),
+                    clock=self.clock,
                 )
         align = rs.align(rs.stream.color) if self.depth_enabled else None
         logger.info(
@@ -225,7 +228,17 @@ class RealSensePublisher(SourceThread):
 
     def _stamp_ns(self, frames: Any) -> int:
         rs = self._rs
-        if frames.get_frame_timestamp_domain() == rs.timestamp_domain.global_time:
+        device = frames.get_frame_timestamp_domain() == rs.timestamp_domain.global_time
+        source = STAMP_DEVICE if device else STAMP_HOST
+        if source != self._stamp_source:  # the first frameset, or the domain changed
+            self._stamp_source = source
+            for stream in (self.color, self.depth):
+                if stream is not None:
+                    stream.stamp_source = source
+            if not device:
+                logger.warning("RealSense %s gives no global-time frame stamps (domain %s); stamping frames "
+                               "on arrival", self.serial or "camera", frames.get_frame_timestamp_domain())
+        if device:
             return int(round(frames.get_timestamp() * 1e6))  # ms since the epoch
         return self.clock.time_ns()
 

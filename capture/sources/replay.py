@@ -6,8 +6,9 @@ it; ``speed=inf`` publishes as fast as the bus takes it):
 * :class:`McapReplayPublisher` -- an MCAP recording: every message is republished **as
   recorded** (the raw CDR payload, never decoded) with its channel's ROS 2 type on its
   original key (the topic without the leading ``/``, optionally under ``key_prefix``),
-  stamped with its recorded ``publish_time``, in ``log_time`` order. A recorder on the
-  other side writes byte-identical payloads.
+  with its header stamp as the capture stamp (the recorded ``publish_time`` for a message
+  without one, e.g. tf), its recorded ``publish_time`` as the bus time and its channel's
+  ``capture_stamp`` source, in ``log_time`` order. A recorder on the other side writes byte-identical payloads.
 * :class:`DatasetReplayPublisher` -- a dataset folder (TUM RGB-D, EuRoC, KITTI, 7-Scenes, a
   video; anything :func:`flightkit.datasets.open_sequence` reads): images are decoded and
   published like a camera driver would (``color`` bgr8, or ``left``/``right`` mono8 for
@@ -37,16 +38,20 @@ import zenoh
 from capture.sources._runner import SourceThread
 from capture.sources.realsense import depth_to_mm
 from flightkit.bus.keys import Keys
-from flightkit.bus.msgs import Image
+from flightkit.bus.msgs import CameraInfo, CompressedImage, Image, Odometry, PoseStamped, TransformStamped
 from flightkit.bus.pubsub import BusPublisher
 from flightkit.bus.streams import CameraModel, CameraStream, PosePublisher, has_subscribers, optical_frame_id
-from flightkit.clock import Clock
-from flightkit.datasets.mcap_reader import RecordingReader
+from flightkit.clock import STAMP_DEVICE, STAMP_HOST, Clock
+from flightkit.datasets.mcap_reader import RecordingReader, header_stamp_ns
 from flightkit.errors import BusError, CaptureError, DatasetError
 
 __all__ = ["DatasetReplayPublisher", "McapReplayPublisher", "open_replay"]
 
 logger = logging.getLogger(__name__)
+
+_HEADER_FIRST = frozenset(  # message types that start with a std_msgs/Header (their capture stamp)
+    m.TYPE for m in (CameraInfo, CompressedImage, Image, Odometry, PoseStamped, TransformStamped)
+)
 
 
 def _check_speed(speed: float) -> float:
@@ -118,6 +123,7 @@ class McapReplayPublisher(SourceThread):
         self.key_of: dict[str, str] = {}
         self.skipped: list[str] = []
         self._pubs: dict[str, BusPublisher] = {}
+        self._header_stamped: set[str] = set()  # topics whose messages start with a std_msgs/Header
         for st in self.reader.streams:
             topic = st.topic.lstrip("/")
             if wanted is not None and topic not in wanted:
@@ -129,8 +135,11 @@ class McapReplayPublisher(SourceThread):
             key = f"{prefix}/{topic}" if prefix else topic
             try:
                 self._pubs[st.topic] = BusPublisher(
-                    session, key, st.schema_name, reliable=True, drop_when_congested=False
+                    session, key, st.schema_name, reliable=True, drop_when_congested=False,
+                    stamp_source=STAMP_DEVICE if st.capture_stamp == STAMP_DEVICE else STAMP_HOST,
                 )
+                if st.schema_name in _HEADER_FIRST:
+                    self._header_stamped.add(st.topic)
             except BusError as exc:
                 self.skipped.append(st.topic)
                 logger.warning("not replaying %s: %s", st.topic, exc)
@@ -160,7 +169,8 @@ class McapReplayPublisher(SourceThread):
         for m in self.reader.messages(sorted(pubs)):
             if not pacer.wait(m.log_time_ns):
                 return
-            pubs[m.topic].put(m.data, m.publish_time_ns)
+            stamp = header_stamp_ns(m.data) if m.topic in self._header_stamped else m.publish_time_ns
+            pubs[m.topic].put(m.data, stamp, m.publish_time_ns)  # the recorded bus time
             self._count()
         logger.info("replay of %s finished: %d messages", self.path, self.published)
 

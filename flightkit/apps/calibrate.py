@@ -95,7 +95,8 @@ def load_inputs(
         size: process images at (width, height).
         lab_cfg: gives ``T_world_mocap`` and the configured ``T_body_camera`` when given.
         progress: ``progress(done, total)`` per VO frame.
-        board: a ChArUco board fixed in the room, ``"5x7:0.04:0.03[:DICT]"``: the camera's
+        board: a ChArUco board or AprilTag grid fixed in the room, ``"5x7:0.04:0.03[:DICT]"`` or
+            ``"apriltag:6x6:0.05:0.04"`` (:func:`~flightkit.calibration.board.parse_board`): the camera's
             motion is its pose against the board in every image that shows it, instead of VO.
 
     Raises:
@@ -127,11 +128,11 @@ def load_inputs(
 
 def _board_inputs(seq: Any, board: str, body: Trajectory, configured: Transform | None,
                   source: dict[str, str]) -> CalibrationInputs:
-    from flightkit.calibration.board import CharucoBoardDetector, board_camera_poses, parse_board
+    from flightkit.calibration.board import BoardDetector, board_camera_poses, parse_board
 
     k = seq.intrinsics
-    detector = CharucoBoardDetector(parse_board(board), [[k.fx, 0, k.cx], [0, k.fy, k.cy], [0, 0, 1]],
-                                    list(k.dist) or None)
+    spec = parse_board(board)
+    detector = BoardDetector(spec, [[k.fx, 0, k.cx], [0, k.fy, k.cy], [0, 0, 1]], list(k.dist) or None)
     t0 = time.perf_counter()
     stamps, poses, errors = board_camera_poses(detector, ((f.stamp_ns, f.gray) for f in seq.frames()))
     if len(stamps) < 10:
@@ -140,7 +141,7 @@ def _board_inputs(seq: Any, board: str, body: Trajectory, configured: Transform 
             "sharp, and check its size and dictionary",
             "T_body_camera",
         )
-    source.update(camera_motion=f"charuco board {board}", board_images=str(len(stamps)),
+    source.update(camera_motion=f"{spec.kind} board {board}", board_images=str(len(stamps)),
                   board_reprojection_px=f"{float(np.median(errors)):.3f}")
     cam = Trajectory.from_transforms(np.asarray(stamps, dtype=np.int64), poses, "board")
     return CalibrationInputs(body, cam, configured, source, time.perf_counter() - t0)

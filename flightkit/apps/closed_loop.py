@@ -266,7 +266,8 @@ async def fly_closed_loop(
             ``bus``, ``camera`` extrinsics and intrinsics, ``sim``).
         plan: a :class:`trajectories.plan.Plan`; its controller is switched to ``local_ned``.
         out_dir: where the flight log, the TUM files and the plot go (created).
-        speed: simulated seconds per wall second (1: the camera renders in real time).
+        speed: simulated seconds per wall second at most; the lab slows down when the host
+            cannot render or estimate a frame within half a frame period of simulated time.
         autopilot / backend: override the config's.
         method: VO method (one that uses depth).
         width_px, height_px, camera_rate_hz: camera overrides (None keeps the config's);
@@ -324,7 +325,10 @@ async def fly_closed_loop(
     plan = plan.with_changes(
         controller=dataclasses.replace(plan.controller, output_frame=OutputFrame.LOCAL_NED)
     )
-    live_cfg = LiveVoConfig(method=method, vision_rate_hz=vision_rate_hz, kind=kind)
+    # the simulated onboard computer keeps up with the camera: rendering a frame and estimating
+    # it take at most half a frame period of simulated time each, however loaded the host is
+    frame_budget_s = 0.5 / cam.rate_hz
+    live_cfg = LiveVoConfig(method=method, vision_rate_hz=vision_rate_hz, kind=kind, compute_budget_s=frame_budget_s)
     keys = Keys(cfg.vehicle.namespace)
     body = cfg.mocap.body
     clock = clock or SimClock(float(speed), max_wall_step_s=ONE_PROCESS_WALL_STEP_S)
@@ -358,7 +362,9 @@ async def fly_closed_loop(
     log_path = out / "closed_loop_flight.csv"
     try:
         streams = CameraStreamSelection(color=True, depth=True, stereo=False, tf=False)
-        pubs = SimLabPublishers(lab, cfg, session, camera=True, streams=streams).start()
+        pubs = SimLabPublishers(
+            lab, cfg, session, camera=True, streams=streams, render_budget_s=frame_budget_s
+        ).start()
         say(f"bus: mocap (scoring only) and camera {cam.width_px}x{cam.height_px} at {cam.rate_hz:g} Hz on "
             f"{', '.join(pubs.keys)}")
         mocap = BusMocapSource(session, keys, clock, WorldFrames(cfg.mocap.T_world_mocap.to_transform()))

@@ -99,7 +99,7 @@ async def sim_session(
 
     Args:
         lab_cfg: lab config; ``vehicle.autopilot``, ``link.backend``, ``sim`` (speed, mocap
-            rate and noise, dynamics) and ``mocap.body``/``T_world_mocap`` are used.
+            rate, noise and latency, dynamics) and ``mocap.body``/``T_world_mocap`` are used.
         autopilot / backend / speed: override the config's.
         clock: the clock (default ``SimClock(sim.speed)``); everything runs on it.
         mocap_rate_hz: override ``sim.mocap_rate_hz``.
@@ -133,6 +133,7 @@ async def sim_session(
             rate_hz=mocap_rate_hz or cfg.sim.mocap_rate_hz,
             noise_m=cfg.sim.mocap_noise_m,
             T_world_mocap=cfg.mocap.T_world_mocap.to_transform(),
+            latency_s=cfg.sim.mocap_latency_ms / 1000.0,
         )
         from flightkit.link import open_link
 

@@ -21,7 +21,9 @@ from estimation.evaluation_checks import alignment_warnings, first_pose_rotation
 from estimation.pipeline import VoResult, run_vo
 from estimation.timing import TimingTable
 from flightkit.apps.sequences import SIM_PREFIX, open_dataset
+from flightkit.datasets.base import Sequence
 from flightkit.datasets.trajectory import Trajectory, read_trajectory
+from flightkit.errors import DatasetError
 
 __all__ = [
     "EvaluationReport",
@@ -36,21 +38,31 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 
-def load_trajectory(source: Path | str, times: Path | None = None) -> Trajectory:
+def load_trajectory(source: Path | str, times: Path | None = None, calibration: Path | None = None) -> Trajectory:
     """A trajectory from a TUM/KITTI file, or the ground truth of a dataset folder, a recording
-    or a ``sim:PATTERN`` spec (its camera trajectory).
+    or a ``sim:PATTERN`` spec (its camera trajectory). ``calibration`` (a ``flightkit calibrate``
+    JSON file) replaces a recording's own stored calibration.
 
     Raises:
-        DatasetError: unreadable file or folder. EstimationError: a malformed ``sim:`` spec.
+        DatasetError: unreadable file or folder, or a calibration for something not a recording.
+        EstimationError: a malformed ``sim:`` spec. CalibrationError: an unreadable calibration file.
     """
-    if isinstance(source, str) and source.startswith(SIM_PREFIX):
-        seq = open_dataset(source)
-        return seq.groundtruth().renamed(f"{seq.name} ground truth")
     path = Path(source)
-    if path.is_dir() or path.suffix.lower() == ".mcap":
+    if calibration is not None:
+        if path.suffix.lower() != ".mcap":
+            raise DatasetError(f"--calibration applies to a .mcap recording's ground truth, not {source}; "
+                               "export the recording with it, or drop --calibration")
+        from flightkit.calibration.result import CalibrationResult
+        from flightkit.datasets.recording import open_mcap
+
+        seq: Sequence = open_mcap(path, calibration=CalibrationResult.read_json(calibration))
+    elif isinstance(source, str) and source.startswith(SIM_PREFIX):
+        seq = open_dataset(source)
+    elif path.is_dir() or path.suffix.lower() == ".mcap":
         seq = open_dataset(path)
-        return seq.groundtruth().renamed(f"{seq.name} ground truth")
-    return read_trajectory(path, times_path=times).renamed(path.name)
+    else:
+        return read_trajectory(path, times_path=times).renamed(path.name)
+    return seq.groundtruth().renamed(f"{seq.name} ground truth")
 
 
 def evaluate_trajectories(
@@ -64,6 +76,7 @@ def evaluate_trajectories(
     est_times: Path | None = None,
     gt_times: Path | None = None,
     plot_dir: Path | None = None,
+    calibration: Path | None = None,
 ) -> tuple[EvaluationReport, list[Path]]:
     """APE, RPE and the lab errors of ``est`` against ``gt`` (see :func:`load_trajectory` for
     what each may be), with the plots written to ``plot_dir`` when given.
@@ -73,7 +86,7 @@ def evaluate_trajectories(
     """
     report = evaluate(
         load_trajectory(est, est_times),
-        load_trajectory(gt, gt_times),
+        load_trajectory(gt, gt_times, calibration),
         alignment=alignment,
         delta=delta,
         delta_unit=delta_unit,

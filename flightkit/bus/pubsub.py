@@ -8,7 +8,7 @@ Every sample a :class:`BusPublisher` sends carries:
   stream id that tells two publishers on one key apart (and a restarted publisher from
   the one before it).
 
-A :class:`BusSubscriber` yields :class:`BusSample` ``(key, msgtype, seq, stamp_ns, payload)``
+A :class:`BusSubscriber` yields :class:`BusSample` ``(key, msgtype, seq, stamp_ns, payload, bus_ns, stamp_source)``
 and counts the messages it missed from gaps in each stream's sequence numbers.
 
 Reliability policies (``BusPublisher(reliable=..., drop_when_congested=...)``):
@@ -46,14 +46,27 @@ from typing import Any, NamedTuple, Self, cast
 
 import zenoh
 
+from flightkit.clock import STAMP_DEVICE, STAMP_HOST, STAMP_SOURCES, Clock
 from flightkit.errors import BusError
 
-__all__ = ["BusPublisher", "BusSample", "BusSubscriber", "StreamStats", "cdr_encoding", "msgtype_of"]
+__all__ = [
+    "STAMP_DEVICE",
+    "STAMP_HOST",
+    "STAMP_SOURCES",
+    "BusPublisher",
+    "BusSample",
+    "BusSubscriber",
+    "StreamStats",
+    "cdr_encoding",
+    "msgtype_of",
+]
 
 logger = logging.getLogger(__name__)
 
-_MAGIC = b"FK01"
-_ATTACHMENT = struct.Struct("<4sQqQ")
+_MAGIC_V1 = b"FK01"
+_ATTACHMENT_V1 = struct.Struct("<4sQqQ")
+_MAGIC = b"FK02"
+_ATTACHMENT = struct.Struct("<4sQqQqB")
 _CDR = "application/cdr"
 
 
@@ -76,8 +89,10 @@ class BusSample(NamedTuple):
         key: the key expression it was published on.
         msgtype: ROS 2 type name, e.g. ``"sensor_msgs/msg/Image"`` (``""`` if not given).
         seq: per-stream sequence number (-1 when the publisher is not a flightkit one).
-        stamp_ns: the publisher's stamp, ns since the epoch (0 when not given).
+        stamp_ns: the capture stamp, ns since the epoch (0 when not given).
         payload: the CDR payload.
+        bus_ns: when the publisher put it on the bus, its clock's ns since the epoch (0: not given).
+        stamp_source: ``device``, ``host`` or ``""`` (see :data:`STAMP_SOURCES`).
     """
 
     key: str
@@ -85,6 +100,8 @@ class BusSample(NamedTuple):
     seq: int
     stamp_ns: int
     payload: bytes
+    bus_ns: int = 0
+    stamp_source: str = ""
 
 
 def _type_name(msgtype: Any) -> str:
@@ -108,6 +125,9 @@ class BusPublisher:
             subscriber cannot keep up (images: True; mocap: False).
         express: send each sample at once, without batching (lower latency).
         priority: Zenoh priority; default ``DATA`` (``REAL_TIME`` for urgent control data).
+        clock: stamps each sample's bus time (``time_ns`` when put); default the wall clock.
+        stamp_source: ``device`` when the capture stamps given are the device's own, ``host``
+            when they are the host's time at hand-over (the default).
 
     ``put``/``publish`` are thread-safe and return immediately, except that with
     ``drop_when_congested=False`` Zenoh may block while its queues are full.
@@ -126,9 +146,14 @@ class BusPublisher:
         drop_when_congested: bool = False,
         express: bool = False,
         priority: zenoh.Priority | None = None,
+        clock: Clock | None = None,
+        stamp_source: str = STAMP_HOST,
     ) -> None:
         self.key = key
         self.msgtype = _type_name(msgtype)
+        self._code = 0
+        self.stamp_source = stamp_source
+        self._time_ns = clock.time_ns if clock is not None else time.time_ns
         self.stream_id = secrets.randbits(64)
         self._lock = threading.Lock()
         self._seq = 0
@@ -149,6 +174,17 @@ class BusPublisher:
         self._closed = False
 
     @property
+    def stamp_source(self) -> str:
+        """``device`` or ``host``: what the capture stamps of this publisher's samples are."""
+        return STAMP_SOURCES[self._code]
+
+    @stamp_source.setter
+    def stamp_source(self, source: str) -> None:
+        if source not in STAMP_SOURCES[1:]:
+            raise BusError(f"stamp source {source!r} is not known; use {STAMP_DEVICE} or {STAMP_HOST}")
+        self._code = STAMP_SOURCES.index(source)
+
+    @property
     def seq(self) -> int:
         """Sequence number of the last sample sent (0 before the first)."""
         return self._seq
@@ -164,8 +200,9 @@ class BusPublisher:
         status = cast("zenoh.MatchingStatus", self._pub.matching_status)
         return status.matching
 
-    def put(self, payload: bytes | bytearray, stamp_ns: int) -> int:
-        """Send one encoded payload stamped ``stamp_ns``; returns its sequence number.
+    def put(self, payload: bytes | bytearray, stamp_ns: int, bus_ns: int | None = None) -> int:
+        """Send one encoded payload with capture stamp ``stamp_ns`` and bus time ``bus_ns``
+        (default: the clock's now; a replay passes the recorded one); returns its sequence number.
 
         ``payload`` is copied by Zenoh before this returns, so a reused buffer may be
         overwritten afterwards.
@@ -175,7 +212,8 @@ class BusPublisher:
                 raise BusError(f"publisher on {self.key!r} is closed; create a new one")
             self._seq += 1
             seq = self._seq
-            attachment = _ATTACHMENT.pack(_MAGIC, seq, int(stamp_ns), self.stream_id)
+            bus = self._time_ns() if bus_ns is None else int(bus_ns)
+            attachment = _ATTACHMENT.pack(_MAGIC, seq, int(stamp_ns), self.stream_id, bus, self._code)
             try:
                 self._pub.put(payload, attachment=attachment)
             except zenoh.ZError as exc:
@@ -226,13 +264,16 @@ def _parse_sample(sample: zenoh.Sample) -> tuple[BusSample, int]:
     """The sample and its publisher's stream id (0 when not from a BusPublisher)."""
     key = str(sample.key_expr)
     msgtype = msgtype_of(sample.encoding)
-    seq, stamp_ns, stream_id = -1, 0, 0
+    seq, stamp_ns, stream_id, bus_ns, code = -1, 0, 0, 0, 0
     att = sample.attachment
     if att is not None:
         raw = att.to_bytes()
         if len(raw) == _ATTACHMENT.size and raw[:4] == _MAGIC:
-            _, seq, stamp_ns, stream_id = _ATTACHMENT.unpack(raw)
-    return BusSample(key, msgtype, seq, stamp_ns, sample.payload.to_bytes()), stream_id
+            _, seq, stamp_ns, stream_id, bus_ns, code = _ATTACHMENT.unpack(raw)
+        elif len(raw) == _ATTACHMENT_V1.size and raw[:4] == _MAGIC_V1:
+            _, seq, stamp_ns, stream_id = _ATTACHMENT_V1.unpack(raw)
+    source = STAMP_SOURCES[code] if code < len(STAMP_SOURCES) else ""
+    return BusSample(key, msgtype, seq, stamp_ns, sample.payload.to_bytes(), bus_ns, source), stream_id
 
 
 def _resolve(fut: asyncio.Future[None]) -> None:

@@ -32,7 +32,8 @@ from flightkit.bus.msgs import (
     TFMessage,
     TransformStamped,
 )
-from flightkit.bus.pubsub import BusPublisher
+from flightkit.bus.pubsub import STAMP_HOST, BusPublisher
+from flightkit.clock import Clock
 from flightkit.errors import BusError
 from flightkit.frames import MOCAP_FRAME_ID, Transform
 
@@ -135,6 +136,9 @@ class CameraStream:
             ``bgr8``, ``mono8``, ``16UC1``, ...).
         jpeg_quality: 1-100 also publishes ``image/compressed`` (8-bit images only); 0 = off.
         frame_id: the header frame id (default: the camera's optical frame).
+        clock: stamps the bus time of each sample (default the wall clock).
+        stamp_source: ``device`` when the stamps given to :meth:`publish` are the camera's own
+            capture times, ``host`` when the driver gives none (see :mod:`flightkit.bus.pubsub`).
 
     :meth:`publish` is meant for one thread (the camera's); it returns once Zenoh holds a
     copy of the payload.
@@ -150,6 +154,8 @@ class CameraStream:
         *,
         jpeg_quality: int = 0,
         frame_id: str | None = None,
+        clock: Clock | None = None,
+        stamp_source: str = STAMP_HOST,
     ) -> None:
         self.name = name
         self.model = model
@@ -157,13 +163,16 @@ class CameraStream:
         self.frame_id = frame_id or optical_frame_id(keys, name)
         self.image_key = keys.camera_image(name)
         self.info_key = keys.camera_info(name)
-        self._image = BusPublisher(session, self.image_key, Image, reliable=False, drop_when_congested=True)
-        self._info = BusPublisher(session, self.info_key, CameraInfo, reliable=True, drop_when_congested=False)
+        stamping: dict[str, Any] = {"clock": clock, "stamp_source": stamp_source}
+        self._image = BusPublisher(session, self.image_key, Image, reliable=False, drop_when_congested=True, **stamping)
+        self._info = BusPublisher(session, self.info_key, CameraInfo, reliable=True, drop_when_congested=False,
+                                  **stamping)
         self._jpeg: BusPublisher | None = None
         self._jpeg_quality = int(jpeg_quality)
         if jpeg_quality:
             self._jpeg = BusPublisher(
-                session, keys.camera_compressed(name), CompressedImage, reliable=False, drop_when_congested=True
+                session, keys.camera_compressed(name), CompressedImage, reliable=False, drop_when_congested=True,
+                **stamping,
             )
         self._buf = bytearray()
         self.frames = 0
@@ -172,6 +181,18 @@ class CameraStream:
     def has_subscribers(self) -> bool:
         """Whether anyone subscribes to the image right now."""
         return has_subscribers(self._image)
+
+    @property
+    def stamp_source(self) -> str:
+        """``device`` or ``host`` (see the constructor); a driver sets it before its first frame
+        once it knows whether the device gives capture times."""
+        return self._image.stamp_source
+
+    @stamp_source.setter
+    def stamp_source(self, source: str) -> None:
+        for pub in (self._image, self._info, self._jpeg):
+            if pub is not None:
+                pub.stamp_source = source
 
     def publish(self, stamp_ns: int, array: npt.NDArray[Any]) -> int:
         """Publish one frame (and its camera_info) stamped ``stamp_ns``; returns the image's sequence number.
@@ -213,13 +234,17 @@ class PosePublisher:
 
     Poses are published in the mocap system's own frame (``frame_id`` ``mocap``), as a mocap
     driver would; consumers map them into the world with ``T_world_mocap``. A lost body is
-    published as a NaN pose (:meth:`publish` with None).
+    published as a NaN pose (:meth:`publish` with None). ``clock`` stamps the bus time;
+    ``stamp_source`` says whether the stamps given are the mocap system's frame times (``device``)
+    or the host's arrival times (``host``).
     """
 
-    def __init__(self, session: zenoh.Session, keys: Keys, body: str, frame_id: str = MOCAP_FRAME_ID) -> None:
+    def __init__(self, session: zenoh.Session, keys: Keys, body: str, frame_id: str = MOCAP_FRAME_ID, *,
+                 clock: Clock | None = None, stamp_source: str = STAMP_HOST) -> None:
         self.key = keys.mocap_pose(body)
         self.frame_id = frame_id
-        self._pub = BusPublisher(session, self.key, PoseStamped, reliable=True, drop_when_congested=False, express=True)
+        self._pub = BusPublisher(session, self.key, PoseStamped, reliable=True, drop_when_congested=False, express=True,
+                                 clock=clock, stamp_source=stamp_source)
         self._lock = threading.Lock()
 
     @property
@@ -242,9 +267,11 @@ class PosePublisher:
 class TfPublisher:
     """tf2_msgs/TFMessage on ``<ns>/tf``: extrinsics and ground-truth camera poses (reliable)."""
 
-    def __init__(self, session: zenoh.Session, keys: Keys) -> None:
+    def __init__(self, session: zenoh.Session, keys: Keys, clock: Clock | None = None,
+                 stamp_source: str = STAMP_HOST) -> None:
         self.key = keys.tf()
-        self._pub = BusPublisher(session, self.key, TFMessage, reliable=True, drop_when_congested=False)
+        self._pub = BusPublisher(session, self.key, TFMessage, reliable=True, drop_when_congested=False, clock=clock,
+                                 stamp_source=stamp_source)
 
     def publish(self, stamp_ns: int, transforms: list[tuple[str, str, Transform]]) -> int:
         """Publish ``(parent, child, T_parent_child)`` triples in one message."""

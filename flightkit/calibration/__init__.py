@@ -10,7 +10,7 @@ Core numerics (numpy/scipy, and cv2 for the board; no IO, no capability package)
 * :mod:`~flightkit.calibration.rates`: body rates from orientations;
 * :mod:`~flightkit.calibration.time_offset`: camera-to-mocap offset and drift;
 * :mod:`~flightkit.calibration.hand_eye`: ``T_body_camera`` from paired motions;
-* :mod:`~flightkit.calibration.board`: ChArUco board poses (``cv2.aruco``);
+* :mod:`~flightkit.calibration.board`: ChArUco and AprilTag-grid board poses (``cv2.aruco``);
 * :mod:`~flightkit.calibration.clock_sync`: host clock offset from request/response stamps;
 * :mod:`~flightkit.calibration.latency`: p50/p99 of the capture-to-setpoint chain, pose prediction,
   a stream's rate/age/jitter against bounds;

@@ -17,8 +17,11 @@ Pure numpy.
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import math
 from collections import deque
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,7 +29,19 @@ import numpy.typing as npt
 
 from flightkit.errors import CalibrationError
 
-__all__ = ["ClockOffsetEstimate", "ClockSync", "Exchange", "estimate_clock_offset"]
+__all__ = [
+    "CLOCK_OFFSETS_RECORD",
+    "ClockOffsetEstimate",
+    "ClockSync",
+    "Exchange",
+    "estimate_clock_offset",
+    "offsets_from_metadata",
+    "offsets_to_metadata",
+]
+
+CLOCK_OFFSETS_RECORD = "clock_offsets"
+"""Recording metadata record: ``local_host`` (the recorder's host, whose clock stamps ``log_time``)
+and one JSON :class:`ClockOffsetEstimate` per other host on the bus."""
 
 _NS = 1_000_000_000
 
@@ -178,3 +193,27 @@ class ClockSync:
     def offsets(self) -> npt.NDArray[np.float64]:
         """Every offset in the history, ns (for plots)."""
         return np.array([e.offset_ns for e in self._ex], dtype=np.float64)
+
+
+def offsets_to_metadata(local_host: str, estimates: Mapping[str, ClockOffsetEstimate]) -> dict[str, str]:
+    """The :data:`CLOCK_OFFSETS_RECORD` record: ``local_host`` and host -> JSON estimate."""
+    out = {"local_host": local_host}
+    out.update({host: json.dumps(dataclasses.asdict(est), sort_keys=True) for host, est in estimates.items()})
+    return out
+
+
+def offsets_from_metadata(record: Mapping[str, str]) -> dict[str, ClockOffsetEstimate]:
+    """The inverse of :func:`offsets_to_metadata` (host -> estimate; ``local_host`` left out).
+
+    Raises:
+        CalibrationError: a malformed entry.
+    """
+    out: dict[str, ClockOffsetEstimate] = {}
+    for host, text in record.items():
+        if host == "local_host":
+            continue
+        try:
+            out[host] = ClockOffsetEstimate(**json.loads(text))
+        except (TypeError, ValueError) as exc:
+            raise CalibrationError(f"the clock offset of host {host!r} is malformed ({exc})", "clock offset") from exc
+    return out

@@ -4,6 +4,7 @@
 
     flightkit calibrate time REC.mcap [--method rgbd-pnp | --camera-trajectory VO.txt] [--json] [--write OUT]
     flightkit calibrate handeye REC.mcap [...same options...]
+    flightkit capture calibrate time|handeye REC.mcap [...same options...]   (the same command)
 
 ``--write`` takes a ``.json`` file (a calibration file) or a ``.mcap`` path (a copy of the
 recording with the result in its metadata; the recording's own path rewrites it in place).
@@ -21,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from flightkit.calibration import CalibrationResult
 
-__all__ = ["format_result", "register", "run"]
+__all__ = ["add_options", "format_result", "register", "run"]
 
 
 def register(subparsers: Any) -> None:
@@ -38,25 +39,30 @@ def register(subparsers: Any) -> None:
         ("handeye", "T_body_camera from the body's and the camera's motion, with residuals"),
     ):
         p = sub.add_parser(what, help=help_, description=help_)
-        p.add_argument("recording", type=Path, help="the .mcap recording of a calibration flight")
-        p.add_argument("--camera-trajectory", type=Path, metavar="FILE",
-                       help="the camera's poses (TUM) at its own stamps, instead of running VO")
-        p.add_argument("--board", metavar="SPEC",
-                       help="a ChArUco board fixed in the room, SQUARESxSQUARES:SQUARE_M:MARKER_M[:DICT] "
-                       "(e.g. 5x7:0.04:0.03): the camera's motion comes from it instead of VO")
-        p.add_argument("--method", default="rgbd-pnp", help="VO method for the camera's motion (default rgbd-pnp)")
-        p.add_argument("--camera", help="camera name in the recording (default: its main camera)")
-        p.add_argument("--body", help="mocap body (default: the config's or the recording's)")
-        p.add_argument("--size", help="run VO at WIDTHxHEIGHT")
-        p.add_argument("--config", metavar="LAB.toml", help="T_world_mocap and the configured T_body_camera")
-        p.add_argument("--max-offset", type=float, default=0.5, metavar="S", help="largest offset searched (0.5 s)")
-        p.add_argument("--window", type=float, default=10.0, metavar="S", help="window for the drift fit (10 s)")
-        p.add_argument("--json", action="store_true", help="print the result as JSON")
-        p.add_argument("--write", type=Path, action="append", default=[], metavar="OUT",
-                       help="store the result: OUT.json, or OUT.mcap (a copy of the recording with it in the metadata; "
-                       "the recording's own path rewrites it); may be repeated")
-        p.add_argument("--force", action="store_true", help="overwrite an existing OUT")
+        add_options(p)
         p.set_defaults(func=run, what=what)
+
+
+def add_options(p: argparse.ArgumentParser) -> None:
+    """The recording and options of one calibration (``calibrate time|handeye`` and ``capture calibrate``)."""
+    p.add_argument("recording", type=Path, help="the .mcap recording of a calibration flight")
+    p.add_argument("--camera-trajectory", type=Path, metavar="FILE",
+                   help="the camera's poses (TUM) at its own stamps, instead of running VO")
+    p.add_argument("--board", metavar="SPEC",
+                   help="a board fixed in the room, [charuco|apriltag:]NXxNY:SQUARE_M:MARKER_M[:DICT] "
+                   "(e.g. 5x7:0.04:0.03, apriltag:6x6:0.05:0.04): the camera's motion comes from it instead of VO")
+    p.add_argument("--method", default="rgbd-pnp", help="VO method for the camera's motion (default rgbd-pnp)")
+    p.add_argument("--camera", help="camera name in the recording (default: its main camera)")
+    p.add_argument("--body", help="mocap body (default: the config's or the recording's)")
+    p.add_argument("--size", help="run VO at WIDTHxHEIGHT")
+    p.add_argument("--config", metavar="LAB.toml", help="T_world_mocap and the configured T_body_camera")
+    p.add_argument("--max-offset", type=float, default=0.5, metavar="S", help="largest offset searched (0.5 s)")
+    p.add_argument("--window", type=float, default=10.0, metavar="S", help="window for the drift fit (10 s)")
+    p.add_argument("--json", action="store_true", help="print the result as JSON")
+    p.add_argument("--write", type=Path, action="append", default=[], metavar="OUT",
+                   help="store the result: OUT.json, or OUT.mcap (a copy of the recording with it in the metadata; "
+                   "the recording's own path rewrites it); may be repeated")
+    p.add_argument("--force", action="store_true", help="overwrite an existing OUT")
 
 
 def _usage(parser: argparse.ArgumentParser) -> int:

@@ -1,4 +1,5 @@
-"""``flightkit capture info|recover|publish``: inspect and salvage recordings, publish capture sources."""
+"""``flightkit capture info|recover|calibrate|publish``: inspect, salvage and calibrate recordings, publish capture
+sources."""
 
 from __future__ import annotations
 
@@ -8,6 +9,8 @@ import logging
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
+
+from flightkit.cli import calibrate as calibrate_cli
 
 logger = logging.getLogger(__name__)
 
@@ -25,6 +28,15 @@ def register(sub: Any) -> None:
     rec.add_argument("-o", "--output", required=True, help="the repaired .mcap file to write")
     rec.add_argument("--force", action="store_true", help="overwrite the output if it exists")
     rec.set_defaults(func=run_recover)
+    cal = cs.add_parser(
+        "calibrate",
+        help="calibrate a recording (time offset, hand-eye) and store the result: flightkit calibrate WHAT ...",
+        description="The same command as 'flightkit calibrate time|handeye'; --write REC.mcap stores the result "
+        "in the recording's metadata, --write FILE.json as a calibration file (docs/calibration.md).",
+    )
+    cal.add_argument("what", choices=("time", "handeye"), help="what to calibrate")
+    calibrate_cli.add_options(cal)
+    cal.set_defaults(func=calibrate_cli.run)
     pub = cs.add_parser(
         "publish",
         help="publish a camera, video, RealSense, recording/dataset replay or mocap system on the bus",

@@ -33,6 +33,10 @@ def register(sub: Any) -> None:
         "--vehicle", help="export this vehicle (bus namespace) only; default: every vehicle with a camera, "
         "one folder each (OUTPUT/<vehicle>) when the recording holds several",
     )
+    p.add_argument(
+        "--calibration", metavar="FILE.json",
+        help="a flightkit calibrate result to apply (time offset, T_body_camera) instead of the recording's own",
+    )
     p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
     p.set_defaults(func=run)
 
@@ -42,6 +46,7 @@ def run(args: argparse.Namespace) -> int:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     from flightkit.apps.capture import export_recording, export_vehicles
+    from flightkit.calibration.result import CalibrationResult
     from flightkit.config import load_config
 
     T_body_camera = T_world_mocap = None  # noqa: N806
@@ -63,6 +68,7 @@ def run(args: argparse.Namespace) -> int:
             "camera": args.camera, "mocap_body": args.body, "max_diff_s": args.max_diff,
             "T_body_camera": T_body_camera, "T_world_mocap": T_world_mocap, "frame": args.frame,
             "allow_overwrite": args.force, "progress": progress,
+            "calibration": CalibrationResult.read_json(args.calibration) if args.calibration else None,
         }
         if args.vehicle:
             reports = {args.vehicle: export_recording(args.recording, args.output, args.format, vehicle=args.vehicle,

@@ -39,6 +39,12 @@ def register(subparsers: Any) -> None:
         "--arm", action="store_true", help="arm and switch mode from the script (default: the pilot does)"
     )
     p.add_argument(
+        "--allow-hover-on-companion-loss",
+        action="store_true",
+        help="arm even though the autopilot would hover armed until its battery runs out if flightkit stopped "
+        "(its failsafe parameters say so; same as [safety] allow_hover_on_companion_loss = true)",
+    )
+    p.add_argument(
         "--mocap",
         choices=["bus", "motioncapture"],
         default=None,
@@ -64,6 +70,8 @@ def run(args: argparse.Namespace) -> int:
     if is_fleet_plan(load_toml(args.plan)):
         return _run_fleet(args)
     plan = load_plan(args.plan)
+    if args.allow_hover_on_companion_loss:
+        plan = plan.with_safety(allow_hover_on_companion_loss=True)
     sim = args.sim or args.connect == "sim"
     lab = lab_with_overrides(
         load_config(args.config) if args.config else load_config(),
@@ -100,6 +108,7 @@ def run(args: argparse.Namespace) -> int:
 def _run_fleet(args: argparse.Namespace) -> int:
     """A fleet plan: one status line per vehicle, a summary table per vehicle and the fleet's figures."""
     import asyncio
+    import dataclasses
     import time
     from pathlib import Path
 
@@ -108,6 +117,8 @@ def _run_fleet(args: argparse.Namespace) -> int:
     from flightkit.config import load_config
 
     fplan = load_fleet_plan(args.plan)
+    if args.allow_hover_on_companion_loss:
+        fplan = dataclasses.replace(fplan, plan=fplan.plan.with_safety(allow_hover_on_companion_loss=True))
     sim = args.sim or args.connect == "sim"
     lab = lab_with_overrides(
         load_config(args.config) if args.config else load_config(),

@@ -1,8 +1,9 @@
 """``flightkit vehicle``: talk to an autopilot without flying.
 
 ``flightkit vehicle status --connect udpin:0.0.0.0:14540`` waits for the autopilot's
-heartbeat, collects a moment of telemetry and prints who it is and what state it is in
-(``--json`` for scripts). It never arms or commands anything.
+heartbeat, collects a moment of telemetry and prints who it is, what state it is in and what
+it would do if flightkit stopped (its failsafe parameters, as the preflight reads them;
+``--json`` for scripts). It never arms or commands anything.
 """
 
 from __future__ import annotations
@@ -84,6 +85,7 @@ def run(args: argparse.Namespace) -> int:
 
 async def _status(link_cfg: Any, autopilot: Any, listen_s: float) -> dict[str, Any]:
     from flightkit.clock import WallClock
+    from flightkit.link.base import read_companion_loss
     from flightkit.link.mavlink import MavlinkLink
 
     clock = WallClock()
@@ -101,6 +103,7 @@ async def _status(link_cfg: Any, autopilot: Any, listen_s: float) -> dict[str, A
         info = link.info
         tel = link.telemetry
         stats = link.stats
+        companion_loss = await read_companion_loss(link)
 
         def num(x: float, digits: int = 3) -> float | None:
             return None if math.isnan(x) or math.isinf(x) else round(x, digits)
@@ -126,6 +129,8 @@ async def _status(link_cfg: Any, autopilot: Any, listen_s: float) -> dict[str, A
             "statustext": list(link.statustext[-5:]),
             "packets_received": stats.packets_received,
             "packets_rejected": stats.packets_rejected,
+            "companion_loss": companion_loss.summary,
+            "hovers_on_companion_loss": companion_loss.hovers,
         }
 
 
@@ -152,6 +157,7 @@ def _print_report(r: dict[str, Any]) -> None:
         ("landed", r["landed_state"]),
         ("position", show(r["position_enu_m"], " m ENU") + f", yaw {show(r['yaw_enu_deg'], ' deg')}"),
         ("battery", f"{show(r['battery_voltage_v'], ' V')}, {show(r['battery_remaining_pct'], ' %')}"),
+        ("failsafe", r["companion_loss"] + (" (fly refuses to arm)" if r["hovers_on_companion_loss"] else "")),
     ]
     width = max(len(k) for k, _ in rows)
     for key, value in rows:

@@ -60,6 +60,8 @@ def register(subparsers: Any) -> None:
     ev.add_argument("--est-times", type=Path, help="times.txt for a KITTI estimate file")
     ev.add_argument("--gt-times", type=Path, help="times.txt for a KITTI ground-truth file")
     ev.add_argument("--plot-dir", type=Path, help="write trajectory.png and errors.png here")
+    ev.add_argument("--calibration", type=Path, metavar="FILE.json",
+                    help="a recording ground truth: apply this flightkit calibrate result instead of its own")
     ev.add_argument("--json", action="store_true", help="print the results as JSON instead of a table")
     ev.set_defaults(func=run_eval)
 
@@ -106,6 +108,7 @@ def run_eval(args: argparse.Namespace) -> int:
         est_times=args.est_times,
         gt_times=args.gt_times,
         plot_dir=args.plot_dir,
+        calibration=args.calibration,
     )
     if args.json:
         from flightkit.apps.vo import alignment_warnings, first_pose_rotation_rmse_deg

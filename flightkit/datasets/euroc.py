@@ -31,6 +31,7 @@ import numpy as np
 import numpy.typing as npt
 
 from flightkit.bus.msgs import CameraInfo
+from flightkit.calibration.result import CalibrationResult
 from flightkit.datasets.base import CameraIntrinsics, SequenceKind, StereoRectification
 from flightkit.datasets.files import FileSequence, FrameFiles, poses_at, require
 from flightkit.datasets.trajectory import Trajectory, associate, read_tum
@@ -269,10 +270,12 @@ def _rot4(R: np.ndarray) -> np.ndarray:  # noqa: N803
 
 
 def euroc_sensor_yaml(
-    info: CameraInfo, T_body_camera: Transform, rate_hz: float, comment: str, time_offset_s: float | None = None  # noqa: N803
+    info: CameraInfo, T_body_camera: Transform, rate_hz: float, comment: str,  # noqa: N803
+    timing: CalibrationResult | None = None,
 ) -> str:
     """A camera's ``sensor.yaml`` (``T_BS`` = ``T_body_camera``, pinhole, radial-tangential), with
-    the camera-to-body time offset when it was measured (``timeshift_cam_imu`` as Kalibr names it)."""
+    the measured camera-to-mocap time offset and drift of ``timing`` when given (the exported
+    ground truth is already on the camera's clock, so Kalibr's ``timeshift_cam_imu`` left is 0)."""
     k = info.k
     d = (list(info.d) + [0.0] * 4)[:4]
     T = T_body_camera.as_matrix().reshape(-1)  # noqa: N806
@@ -292,8 +295,16 @@ def euroc_sensor_yaml(
         "distortion_model: radial-tangential\n"
         "distortion_coefficients: [" + ", ".join(repr(float(v)) for v in d) + "]\n"
     )
-    if time_offset_s is not None:
-        text += f"timeshift_cam_imu: {time_offset_s!r} # s, t_body = t_camera + timeshift\n"
+    if timing is not None and timing.time_offset_ms is not None:
+        text += (
+            "\n# Time, measured by flightkit calibrate: camera stamp - mocap stamp = offset + drift * (t - ref).\n"
+            "# The ground truth of this folder is already on the camera's clock (moved by it).\n"
+            f"time_offset_s: {timing.time_offset_ms * 1e-3!r}\n"
+            f"time_offset_uncertainty_s: {(timing.time_offset_uncertainty_ms or 0.0) * 1e-3!r}\n"
+            f"time_drift_ppm: {float(timing.drift_ppm or 0.0)!r}\n"
+            f"time_ref_ns: {int(timing.ref_ns or 0)}\n"
+            "timeshift_cam_imu: 0.0 # s, left between cam0 and state_groundtruth_estimate0 stamps\n"
+        )
     return text
 
 

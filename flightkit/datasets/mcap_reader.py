@@ -14,6 +14,10 @@ Frames are honoured here, once: :meth:`RecordingReader.world_frames` places the 
 frames in the world from its ``extrinsics`` metadata (``T_world_mocap``, written by the
 recorder from the lab config), and :meth:`RecordingReader.pose_trajectory` returns any pose
 topic in the world frame, refusing a pose whose ``frame_id`` it cannot place.
+
+Times: a message's header stamp is its capture time (the channel's :data:`CAPTURE_STAMP_KEY`
+metadata says whether the device gave it), MCAP ``publish_time`` when it was put on the bus,
+``log_time`` when the recorder received it.
 :func:`decode_image` is the one image decoder.
 """
 
@@ -35,11 +39,14 @@ from mcap.summary import Summary
 
 from flightkit.bus.cdr import CdrReader
 from flightkit.bus.msgs import CameraInfo, CompressedImage, Header, Image, PoseStamped, TFMessage
+from flightkit.calibration.clock_sync import CLOCK_OFFSETS_RECORD, ClockOffsetEstimate, offsets_from_metadata
+from flightkit.calibration.result import METADATA_RECORD, CalibrationResult
 from flightkit.datasets.trajectory import Trajectory
-from flightkit.errors import BusError, DatasetError
+from flightkit.errors import BusError, CalibrationError, DatasetError
 from flightkit.frames import Transform, WorldFrames, quat_xyzw_to_wxyz
 
 __all__ = [
+    "CAPTURE_STAMP_KEY",
     "DecodedImage",
     "RawMessage",
     "RecordingCalibration",
@@ -52,6 +59,10 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
+
+CAPTURE_STAMP_KEY = "flightkit.capture_stamp"
+"""Channel metadata: ``device`` (header stamps are the device's capture times), ``host`` (the
+host's time at hand-over: the device gives none) or ``unknown``."""
 
 _CAMERA = re.compile(r"camera/([^/]+)/(image|image/compressed|camera_info)$")
 _MOCAP = re.compile(r"mocap/([^/]+)/pose$")
@@ -96,6 +107,8 @@ class StreamInfo:
         schema_name: the ROS 2 type (``sensor_msgs/msg/Image``), "" without a schema.
         encoding: the message encoding (``cdr``).
         count: messages, from the summary's statistics (0 when the file has none).
+        capture_stamp: where its header stamps come from, from the channel's
+            :data:`CAPTURE_STAMP_KEY` metadata: ``device``, ``host``, ``unknown`` ("" when not recorded).
     """
 
     channel_id: int
@@ -103,6 +116,7 @@ class StreamInfo:
     schema_name: str
     encoding: str
     count: int
+    capture_stamp: str = ""
 
     @property
     def namespace(self) -> str:
@@ -242,7 +256,7 @@ class RecordingReader:
             schema = summary.schemas.get(ch.schema_id)
             self.streams.append(
                 StreamInfo(cid, ch.topic, schema.name if schema is not None else "", ch.message_encoding,
-                           int(counts.get(cid, 0)))
+                           int(counts.get(cid, 0)), ch.metadata.get(CAPTURE_STAMP_KEY, ""))
             )
         self._schema_of = {s.topic: s.schema_name for s in self.streams}
 
@@ -340,6 +354,35 @@ class RecordingReader:
             T_bc = self._tf_extrinsics()  # noqa: N806
         extra = {k: v for k, v in self.metadata.items() if k.startswith("calibration")}
         return RecordingCalibration(T_wm, T_bc, ext.get("mocap_body", ""), extra)
+
+    def clock_offsets(self) -> dict[str, ClockOffsetEstimate]:
+        """The clock of every other host on the bus against the recorder's (which stamps
+        ``log_time``), as the recorder's clock exchange estimated it: host -> estimate
+        (``remote_to_local_ns`` puts a host's stamps on the recorder's time base). Empty when
+        the recording has none.
+
+        Raises:
+            DatasetError: the record is malformed.
+        """
+        try:
+            return offsets_from_metadata(self.metadata.get(CLOCK_OFFSETS_RECORD, {}))
+        except CalibrationError as exc:
+            raise DatasetError(f"{self.path}: {exc}") from exc
+
+    def measured_calibration(self) -> CalibrationResult | None:
+        """The ``flightkit calibrate`` result stored in the recording (record
+        :data:`~flightkit.calibration.result.METADATA_RECORD`), None when it has none.
+
+        Raises:
+            DatasetError: the record is malformed.
+        """
+        record = self.metadata.get(METADATA_RECORD)
+        if record is None:
+            return None
+        try:
+            return CalibrationResult.from_metadata(record)
+        except CalibrationError as exc:
+            raise DatasetError(f"{self.path}: the {METADATA_RECORD} record is unusable ({exc})") from exc
 
     def _tf_extrinsics(self) -> Transform | None:
         for m in self.messages(self.tf_topics(), log_time_order=False):

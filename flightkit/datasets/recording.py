@@ -33,12 +33,12 @@ import numpy as np
 import numpy.typing as npt
 
 from flightkit.bus.msgs import CameraInfo
-from flightkit.calibration.result import METADATA_RECORD, CalibrationResult
+from flightkit.calibration.result import CalibrationResult
 from flightkit.datasets.base import CameraIntrinsics, Frame, SequenceKind, StereoRectification
 from flightkit.datasets.files import poses_at
 from flightkit.datasets.mcap_reader import RecordingReader, decode_image, header_stamp_ns
 from flightkit.datasets.trajectory import Trajectory, associate
-from flightkit.errors import CalibrationError, DatasetError
+from flightkit.errors import DatasetError
 from flightkit.frames import Transform
 
 __all__ = ["McapSequence", "open_mcap"]
@@ -61,6 +61,8 @@ class McapSequence:
         use_calibration: apply the recording's ``flightkit calibrate`` record when it has one
             (its ``T_body_camera`` unless one is given, and its time offset, which moves the
             ground truth onto the camera's clock).
+        calibration: a calibration result (e.g. a ``--calibration FILE.json``) used instead of
+            the recording's own record.
 
     Raises:
         DatasetError: unreadable recording, no camera, no intrinsics, unknown body.
@@ -75,6 +77,7 @@ class McapSequence:
         T_body_camera: Transform | None = None,  # noqa: N803
         max_diff_s: float = 0.02,
         use_calibration: bool = True,
+        calibration: CalibrationResult | None = None,
     ) -> None:
         self.path = path
         self.name = path.stem
@@ -102,7 +105,7 @@ class McapSequence:
         if "right" in image_cams and camera != "right":
             self._topics["right"] = _image_topic(image_cams["right"])
         calib = self.reader.calibration()
-        measured = _measured_calibration(calib.calibration) if use_calibration else None
+        measured = calibration or (self.reader.measured_calibration() if use_calibration else None)
         from_record = measured.T_body_camera if measured is not None else None
         self.T_body_camera = T_body_camera or from_record or calib.T_body_camera or Transform()
         self._index(path, cams, camera)
@@ -246,16 +249,6 @@ class McapSequence:
         )
 
 
-def _measured_calibration(records: dict[str, dict[str, str]]) -> CalibrationResult | None:
-    record = records.get(METADATA_RECORD)
-    if record is None:
-        return None
-    try:
-        return CalibrationResult.from_metadata(record)
-    except CalibrationError as exc:
-        raise DatasetError(f"the recording's {METADATA_RECORD} record is unusable: {exc}") from exc
-
-
 def _image_topic(topics: dict[str, str]) -> str:
     return topics.get("image") or topics["image/compressed"]
 
@@ -267,5 +260,5 @@ def _intrinsics(info: CameraInfo) -> CameraIntrinsics:
 
 def open_mcap(path: Path, **options: object) -> McapSequence:
     """Open an MCAP recording (options: ``camera``, ``mocap_body``, ``T_world_mocap``,
-    ``T_body_camera``, ``max_diff_s``, ``use_calibration``)."""
+    ``T_body_camera``, ``max_diff_s``, ``use_calibration``, ``calibration``)."""
     return McapSequence(path, **options)  # type: ignore[arg-type]

@@ -13,6 +13,7 @@ import inspect
 import math
 import sys
 import typing
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Protocol, Self, runtime_checkable
@@ -23,6 +24,13 @@ import numpy.typing as npt
 from flightkit.config import Autopilot
 from flightkit.errors import SetpointError
 from flightkit.frames import Transform
+from flightkit.link.failsafe import (
+    ARDUPILOT_FALLBACK_PARAMS,
+    ARDUPILOT_PARAMS,
+    PX4_PARAMS,
+    CompanionLoss,
+    companion_loss,
+)
 
 __all__ = [
     "BatteryState",
@@ -38,6 +46,7 @@ __all__ = [
     "VelocitySetpoint",
     "firmware_traits",
     "offboard_mode_for",
+    "read_companion_loss",
 ]
 
 
@@ -79,20 +88,38 @@ class FirmwareTraits:
         liftoff_m: > 0 when the vehicle leaves the ground only on the autopilot's own take-off
             command (ArduCopter: velocity setpoints on the ground do not spin it up); the height
             to let it lift by before our controller climbs the rest. 0: our setpoints lift off.
+        autopilot: the firmware these traits describe.
+        failsafe_params: the parameters that decide what it does when flightkit stops
+            (:mod:`flightkit.link.failsafe`); read before arming.
+        failsafe_param_fallbacks: older names to read when one of those is absent.
     """
 
     control_mode: FlightMode
     setpoint_prestream_s: float
     liftoff_m: float
+    autopilot: Autopilot = Autopilot.PX4
+    failsafe_params: tuple[str, ...] = ()
+    failsafe_param_fallbacks: Mapping[str, str] = field(default_factory=dict)
+
+    def companion_loss(self, params: Mapping[str, float], our_system_id: int) -> CompanionLoss:
+        """What the vehicle does on its own when flightkit (system ``our_system_id``) stops, from
+        the values of :attr:`failsafe_params` read from it (a missing name: could not be read)."""
+        return companion_loss(self.autopilot, params, our_system_id)
 
 
 def firmware_traits(autopilot: Autopilot) -> FirmwareTraits:
     """The traits of ``autopilot``'s firmware (PX4 or ArduCopter)."""
     if autopilot is Autopilot.PX4:
-        return FirmwareTraits(FlightMode.OFFBOARD, setpoint_prestream_s=1.2, liftoff_m=0.0)
+        return FirmwareTraits(
+            FlightMode.OFFBOARD, setpoint_prestream_s=1.2, liftoff_m=0.0,
+            autopilot=Autopilot.PX4, failsafe_params=PX4_PARAMS,
+        )
     # ArduCopter climbs at its own rate on that command (WPNAV_SPEED_UP, 2.5 m/s by default: above
     # the supervisor's 2 m/s limit on a tall take-off), so it lifts the vehicle only this far.
-    return FirmwareTraits(FlightMode.GUIDED, setpoint_prestream_s=0.1, liftoff_m=0.3)
+    return FirmwareTraits(
+        FlightMode.GUIDED, setpoint_prestream_s=0.1, liftoff_m=0.3, autopilot=Autopilot.ARDUPILOT,
+        failsafe_params=ARDUPILOT_PARAMS, failsafe_param_fallbacks=ARDUPILOT_FALLBACK_PARAMS,
+    )
 
 
 class LandedState(enum.Enum):
@@ -244,6 +271,9 @@ class VehicleInfo:
     autopilot: Autopilot
     vehicle_type: int  # MAV_TYPE
     firmware_version: str = ""
+    our_system_id: int = 255
+    """flightkit's own MAVLink system id on this link (``link.source_system``), as the autopilot
+    sees it in our HEARTBEAT."""
 
     @property
     def traits(self) -> FirmwareTraits:
@@ -411,8 +441,30 @@ class VehicleLink(Protocol, metaclass=_StaticProtocolMeta):
         """Wait until ``predicate(telemetry)`` is true; LinkTimeout naming ``what`` otherwise."""
         ...
 
+    async def read_params(self, names: Sequence[str]) -> dict[str, float]:
+        """Read autopilot parameters by name; blocks up to about ``link.command_timeout_s``.
+
+        Returns the values that arrived (integer parameters as whole floats); a name missing
+        from the result could not be read (no such parameter, or no answer in time).
+        """
+        ...
+
     async def __aenter__(self) -> Self: ...
 
     async def __aexit__(
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None: ...
+
+
+async def read_companion_loss(link: VehicleLink) -> CompanionLoss:
+    """What the connected vehicle would do on its own if flightkit stopped: reads the failsafe
+    parameters its firmware's traits name (older names for those absent) and judges them.
+
+    Blocks up to about twice ``link.command_timeout_s`` when parameters do not answer.
+    """
+    traits = link.info.traits
+    values = await link.read_params(traits.failsafe_params)
+    older = [old for name, old in traits.failsafe_param_fallbacks.items() if name not in values]
+    if older:
+        values.update(await link.read_params(older))
+    return traits.companion_loss(values, link.info.our_system_id)

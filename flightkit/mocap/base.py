@@ -32,6 +32,9 @@ class MocapSample:
         valid: False when the body is occluded or untracked (the pose must not be flown on).
         seq: per-body sequence number from the system (gaps mean missed frames).
         received_s: ``Clock.monotonic_s`` when it arrived (for staleness checks).
+        bus_ns: when its publisher put it on the bus (publisher's clock, ns since the epoch; 0
+            when it did not come over the bus).
+        received_ns: ``Clock.time_ns`` when it arrived here (0 when not known).
     """
 
     stamp_ns: int
@@ -41,6 +44,8 @@ class MocapSample:
     valid: bool = True
     seq: int = 0
     received_s: float = 0.0
+    bus_ns: int = 0
+    received_ns: int = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -57,6 +62,7 @@ class MocapPose:
         received_s: ``Clock.monotonic_s`` when we received it (for staleness checks).
         T_mocap_body: the same pose in the mocap system's own frame, as measured (what a
             bridge or a recorder publishes with ``frame_id "mocap"``).
+        bus_ns, received_ns: see :class:`MocapSample` (the latency stages of the flight log).
     """
 
     stamp_ns: int
@@ -66,6 +72,8 @@ class MocapPose:
     seq: int = 0
     received_s: float = 0.0
     T_mocap_body: Transform | None = None
+    bus_ns: int = 0
+    received_ns: int = 0
 
 
 @runtime_checkable

@@ -91,7 +91,7 @@ class BusMocapSource(WorldFrameSource):
         T = msg.to_transform() if pose_is_valid(msg) else None  # noqa: N806
         self._ingest(
             MocapSample(msg.header.stamp_ns, body, msg.header.frame_id, T, T is not None, max(s.seq, 0),
-                        self.clock.monotonic_s())
+                        self.clock.monotonic_s(), s.bus_ns, self.clock.time_ns())
         )
 
     def missed(self, body: str | None = None) -> int:

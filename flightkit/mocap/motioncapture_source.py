@@ -10,8 +10,10 @@ MocapError instead of a frozen interpreter. A server that accepts TCP but never 
 can still freeze ``connect``.
 
 Per body: ``seq`` counts the frames it appeared in, ``stamp_ns``/``received_s`` come from
-the injected clock when the frame arrived (the Python binding exposes no system
-timestamps), and a body that disappears from a frame, or comes with NaN, is stored once as
+the injected clock when the frame arrived (the Python binding exposes neither the systems'
+frame time nor their latency, so ``stamp_source`` is ``host``; the source says so once when it
+connects, and a bridge records it in the channel metadata), and a body that disappears from a
+frame, or comes with NaN, is stored once as
 ``valid=False`` with its last known pose. Poses are measured in the mocap frame and placed
 in the world by :class:`~flightkit.mocap.source.WorldFrameSource`.
 """
@@ -156,11 +158,11 @@ class MotionCaptureSource(WorldFrameSource):
                 T_mocap_body = Transform.from_quat_wxyz(pos, quat_wxyz / norm)  # noqa: N806
                 seen.add(name)
             self._ingest(MocapSample(stamp_ns, name, MOCAP_FRAME_ID, T_mocap_body, T_mocap_body is not None, seq,
-                                     received_s))
+                                     received_s, 0, stamp_ns))
         for name in self._present - seen:
             if name not in rigid_bodies:  # gone from the frame (NaN bodies were stored above)
                 self._ingest(MocapSample(stamp_ns, name, MOCAP_FRAME_ID, None, False, self._seq.get(name, 0),
-                                         received_s))
+                                         received_s, 0, stamp_ns))
         self._present = seen
         self._first_frame.set()
 
@@ -190,6 +192,8 @@ class MotionCaptureSource(WorldFrameSource):
             waited_s += step_s
         self._store.check_failed()
         logger.info("motioncapture %s streaming, bodies: %s", self._describe(), ", ".join(self.bodies()) or "none")
+        logger.info("motioncapture %s: the binding gives no frame time or latency; poses are stamped on arrival",
+                    self._describe())
 
     async def _close(self) -> None:
         """Ask the thread to stop (it exits after its current wait); a stalled

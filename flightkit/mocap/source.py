@@ -24,7 +24,7 @@ from collections.abc import AsyncIterator, Callable
 from types import TracebackType
 from typing import Self
 
-from flightkit.clock import Clock
+from flightkit.clock import STAMP_HOST, Clock
 from flightkit.errors import FrameError, MocapError
 from flightkit.frames import MOCAP_FRAME_ID, Transform, WorldFrames
 from flightkit.mocap.base import MocapPose, MocapSample
@@ -47,7 +47,12 @@ class WorldFrameSource:
     Attributes:
         hooks: called with every stored pose on the backend's thread before consumers see it
             (benchmarks time the path from sample to setpoint with it); keep them quick.
+        stamp_source: ``device`` when the backend's stamps are the mocap system's own frame
+            times, ``host`` (the default) when they are the arrival time here (a bridge says so
+            in the bus attachment and the recording's channel metadata).
     """
+
+    stamp_source: str = STAMP_HOST
 
     def __init__(self, clock: Clock, frames: WorldFrames, *, name: str, fresh_within_s: float = 0.5) -> None:
         self.clock = clock
@@ -86,7 +91,8 @@ class WorldFrameSource:
                 self._store.fail(exc)
                 return None
         valid = sample.valid and sample.T_frame_body is not None
-        pose = MocapPose(sample.stamp_ns, sample.body, T_world, valid, sample.seq, sample.received_s, T_mocap)
+        pose = MocapPose(sample.stamp_ns, sample.body, T_world, valid, sample.seq, sample.received_s, T_mocap,
+                         sample.bus_ns, sample.received_ns)
         for hook in self.hooks:
             try:
                 hook(pose)

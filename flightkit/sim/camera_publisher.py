@@ -19,7 +19,9 @@ than the configured one, which is still what tf announces.
 Timing: frames are due every ``1 / rate_hz`` of clock time. Rendering costs real time
 (about 25 ms at 320x240 and 200 ms at 640x480 on a laptop core), so when the clock runs
 faster than the renderer the publisher skips the frames it could not render (counted in
-:attr:`SimCameraPublisher.frames_skipped`) rather than fall behind. Under a
+:attr:`SimCameraPublisher.frames_skipped`) rather than fall behind; with ``render_budget_s`` a
+stall-limited :class:`~flightkit.clock.SimClock` waits for each frame instead (a camera that
+never drops a frame, as a closed loop on live VO wants, at the cost of wall time). Under a
 :class:`~flightkit.clock.LockstepClock` time stands still while rendering, so every due
 frame is published exactly.
 """
@@ -28,13 +30,14 @@ from __future__ import annotations
 import logging
 import math
 import threading
-from typing import Self
+from typing import Any, Self
 
 import cv2
 import numpy as np
 import zenoh
 
 from flightkit.bus.keys import Keys
+from flightkit.bus.pubsub import STAMP_DEVICE
 from flightkit.bus.streams import CameraModel, CameraStream, CameraStreamSelection, TfPublisher, optical_frame_id
 from flightkit.clock import Clock, sleep_until
 from flightkit.config import CameraConfig
@@ -63,6 +66,8 @@ class SimCameraPublisher(Running):
         scene: what to render (default: the lab with textured boxes).
         timing: the camera clock's offset and drift (default: none).
         true_T_body_camera: the mount rendered from (default: the configured one).
+        render_budget_s: simulated time a frame's rendering may take; the clock waits for a
+            slower host (see :meth:`flightkit.clock.SimClock.busy`). None: skip late frames.
 
     Use :meth:`start`/:meth:`stop` (or ``with``); :meth:`publish_at` renders and publishes
     one frame synchronously (for scripted tests).
@@ -80,12 +85,14 @@ class SimCameraPublisher(Running):
         scene: Scene | None = None,
         timing: SimTimingErrors | None = None,
         true_T_body_camera: Transform | None = None,  # noqa: N803
+        render_budget_s: float | None = None,
     ) -> None:
         cap = streams or CameraStreamSelection()
         if not (cap.color or cap.depth or cap.stereo):
             raise BusError("no camera stream enabled; set capture.color, capture.depth or capture.stereo to true")
         self._truth = truth
         self._clock = clock
+        self.render_budget_s = render_budget_s
         self._keys = keys
         self.rate_hz = camera_cfg.rate_hz
         self.T_body_camera = camera_cfg.T_body_camera.to_transform()
@@ -102,16 +109,19 @@ class SimCameraPublisher(Running):
         color_frame = optical_frame_id(keys, "color")
         self._streams: list[CameraStream] = []
         self.color = self.depth = self.left = self.right = None
+        # the camera's own capture stamps (true exposure time on its late, drifting clock); bus time from the clock
+        stamping: dict[str, Any] = {"clock": clock, "stamp_source": STAMP_DEVICE}
         if cap.color:
-            self.color = CameraStream(session, keys, "color", self.model, "rgb8", jpeg_quality=cap.jpeg_quality)
+            self.color = CameraStream(session, keys, "color", self.model, "rgb8", jpeg_quality=cap.jpeg_quality,
+                                      **stamping)
         if cap.depth:  # aligned to colour: same optical frame
-            self.depth = CameraStream(session, keys, "depth", self.model, "16UC1", frame_id=color_frame)
+            self.depth = CameraStream(session, keys, "depth", self.model, "16UC1", frame_id=color_frame, **stamping)
         if cap.stereo:
-            self.left = CameraStream(session, keys, "left", self.model, "mono8", frame_id=color_frame)
+            self.left = CameraStream(session, keys, "left", self.model, "mono8", frame_id=color_frame, **stamping)
             right_model = CameraModel(w, h, fx, fy, cx, cy, (0.0,) * 5, -fx * camera_cfg.stereo_baseline_m)
-            self.right = CameraStream(session, keys, "right", right_model, "mono8")
+            self.right = CameraStream(session, keys, "right", right_model, "mono8", **stamping)
         self._streams = [s for s in (self.color, self.depth, self.left, self.right) if s is not None]
-        self._tf = TfPublisher(session, keys) if cap.tf else None
+        self._tf = TfPublisher(session, keys, clock, STAMP_DEVICE) if cap.tf else None
         self.frames_published = 0
         self.frames_skipped = 0
         self.last_T_world_camera: Transform | None = None
@@ -220,7 +230,11 @@ class SimCameraPublisher(Running):
                     break
                 now_s = self._clock.monotonic_s()
                 stamp_ns = self.timing.camera_stamp_ns(self._clock.time_ns(), start_ns)
-                self.publish_at(stamp_ns, self._truth(now_s))
+                if self.render_budget_s is None:
+                    self.publish_at(stamp_ns, self._truth(now_s))
+                else:
+                    with self._clock.busy(self.render_budget_s):
+                        self.publish_at(stamp_ns, self._truth(now_s))
                 n += 1
                 behind = self._clock.monotonic_s() - (t0 + n * period)
                 if behind > period and not lockstep:

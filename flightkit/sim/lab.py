@@ -109,6 +109,11 @@ class SimLab(Running):
             opts = replace(opts, heading_offset_rad=heading_offset_rad)
         if ready_after_s is not None:
             opts = replace(opts, ready_after_s=ready_after_s)
+        # a lab sets its vehicle up as docs/hardware.md says; [sim.autopilot_params] and the
+        # options' own params override that
+        opts = replace(
+            opts, params={**self.personality.lab_params, **sim.autopilot_params, **opts.params}
+        )
         self.events: list[Callable[[SimEvent], None]] = []
         """Hooks called with every :class:`SimEvent` (from simulator threads; keep them quick)."""
         self.event_log: deque[SimEvent] = deque(maxlen=1000)

@@ -41,6 +41,7 @@ import zenoh
 from scipy.spatial.transform import Rotation
 
 from flightkit.bus.keys import Keys
+from flightkit.bus.pubsub import STAMP_DEVICE
 from flightkit.bus.streams import PosePublisher
 from flightkit.clock import Clock
 from flightkit.errors import MocapError
@@ -76,8 +77,9 @@ class SimMocapSystem(Running):
         noise_rad: standard deviation of attitude noise per axis, radians.
         seed: seed of the noise generator (reproducible runs).
         static_bodies: other rigid bodies in the room, name -> fixed ``T_world_body``.
-        latency_s: each frame is stamped this long after its capture (a driver that stamps on
-            arrival): the pose published now is the one of ``latency_s`` ago.
+        latency_s: each frame reaches the host this long after its capture: the pose handed out
+            now is the one of ``latency_s`` ago, stamped with its capture time (the system's own
+            frame time, as Vicon and Qualisys report it); the bus time is now.
 
     Raises:
         MocapError: a rate, noise or latency out of range, or no body.
@@ -174,7 +176,8 @@ class SimMocapSystem(Running):
         """Take one frame now (the sampling thread calls this); returns its samples, empty during a
         dropout. Hands the frame to every sink."""
         now = self.clock.monotonic_s() if now_s is None else now_s
-        stamp_ns = self.clock.time_ns()
+        arrival_ns = self.clock.time_ns()
+        stamp_ns = arrival_ns - round(self.latency_s * 1e9)  # the frame's capture time
         with self._lock:
             if self._t0_s is None:
                 self._t0_s = now
@@ -190,13 +193,14 @@ class SimMocapSystem(Running):
         for name, truth in self.bodies.items():
             if name in hidden:
                 if name in self._tracked:  # a body never tracked is not known to the system yet
-                    samples.append(MocapSample(stamp_ns, name, MOCAP_FRAME_ID, None, False, frame, now))
+                    samples.append(MocapSample(stamp_ns, name, MOCAP_FRAME_ID, None, False, frame, now, 0, arrival_ns))
                 continue
             self._tracked.add(name)
             T_true = self._delays[name](now, truth(now))  # noqa: N806
-            samples.append(MocapSample(stamp_ns, name, MOCAP_FRAME_ID, self.measure(T_true), True, frame, now))
+            samples.append(MocapSample(stamp_ns, name, MOCAP_FRAME_ID, self.measure(T_true), True, frame, now, 0,
+                                       arrival_ns))
         for name, T in self._static.items():
-            samples.append(MocapSample(stamp_ns, name, MOCAP_FRAME_ID, T, True, frame, now))
+            samples.append(MocapSample(stamp_ns, name, MOCAP_FRAME_ID, T, True, frame, now, 0, arrival_ns))
         with self._lock:
             self.frames_published += 1
         for sink in sinks:
@@ -263,7 +267,7 @@ class SimMocapSource(WorldFrameSource):
     Args:
         lab: the simulated lab whose vehicle is tracked (its clock drives the sampling).
         body: rigid-body name of the vehicle.
-        rate_hz, noise_m, seed: see :class:`SimMocapSystem`.
+        rate_hz, noise_m, seed, latency_s: see :class:`SimMocapSystem`.
         T_world_mocap: the calibration the source applies (what ``mocap.T_world_mocap`` in
             config holds).
         true_T_world_mocap: where the mocap frame really is (default: ``T_world_mocap``); give a
@@ -275,6 +279,8 @@ class SimMocapSource(WorldFrameSource):
 
     Use as ``async with source:``; fault injection goes through :attr:`system`.
     """
+
+    stamp_source = STAMP_DEVICE  # the simulated system stamps each frame with its capture time
 
     def __init__(
         self,
@@ -289,6 +295,7 @@ class SimMocapSource(WorldFrameSource):
         static_bodies: Mapping[str, Transform] | None = None,
         system: SimMocapSystem | None = None,
         clock: Clock | None = None,
+        latency_s: float = 0.0,
     ) -> None:
         if system is None:
             if lab is None:
@@ -301,6 +308,7 @@ class SimMocapSource(WorldFrameSource):
                 noise_m=noise_m,
                 seed=seed,
                 static_bodies=static_bodies,
+                latency_s=latency_s,
             )
         clk = clock or (lab.clock if lab is not None else system.clock)
         super().__init__(
@@ -369,7 +377,8 @@ class SimMocapPublisher(Running):
     def __init__(self, session: zenoh.Session, keys: Keys | Mapping[str, Keys], system: SimMocapSystem) -> None:
         self.system = system
         keys_of = keys if isinstance(keys, Mapping) else dict.fromkeys(system.body_names, keys)
-        self._pubs = {name: PosePublisher(session, keys_of[name], name) for name in system.body_names}
+        self._pubs = {name: PosePublisher(session, keys_of[name], name, clock=system.clock, stamp_source=STAMP_DEVICE)
+                      for name in system.body_names}
         self.published = 0
 
     @property

@@ -111,6 +111,8 @@ class Personality:
         param_bytewise: int params are sent bytewise in the float (PX4), else C-cast (ArduPilot).
         firmware_version: (major, minor, patch) for AUTOPILOT_VERSION.
         ev_enable_param: parameter that turns external vision fusion on.
+        lab_params: what a lab set up as ``docs/hardware.md`` recommends changes from the
+            defaults (the simulated lab applies them; the bare autopilot serves the defaults).
         reject_result: MAV_RESULT sent when arming, a mode change or a take-off is refused
             (PX4 1 TEMPORARILY_REJECTED, ArduPilot 4 FAILED).
         ack_set_mode_message: answer the SET_MODE message with a COMMAND_ACK (ArduPilot does).
@@ -156,6 +158,7 @@ class Personality:
     firmware_version: tuple[int, int, int]
     ev_enable_param: str
     reject_result: int = 1
+    lab_params: Mapping[str, float] = field(default_factory=dict)
     ack_set_mode_message: bool = False
     vehicle_name: str = field(default="")
     posctl_limits: Callable[[Mapping[str, float]], PosCtlLimits] | None = None
@@ -240,6 +243,10 @@ PX4 = Personality(
             "EKF2_EV_DELAY": ParamSpec(0.0, ParamType.REAL32, 0.0, 300.0),
             "SYS_AUTOSTART": ParamSpec(10040, ParamType.INT32, 0, 9999999),
             "MAV_SYS_ID": ParamSpec(1, ParamType.INT32, 1, 250),
+            # what it does when flightkit stops (read by the preflight; docs/hardware.md)
+            "COM_RCL_EXCEPT": ParamSpec(0, ParamType.INT32, 0, 7),
+            "NAV_RCL_ACT": ParamSpec(2, ParamType.INT32, 0, 6),
+            "COM_RC_IN_MODE": ParamSpec(3, ParamType.INT32, 0, 4),
         }
     ),
     param_bytewise=True,
@@ -322,12 +329,17 @@ ARDUPILOT = Personality(
             "EK3_SRC1_YAW": ParamSpec(1, ParamType.INT8, 0, 6),
             "SYSID_THISMAV": ParamSpec(1, ParamType.INT16, 1, 255),
             "FRAME_CLASS": ParamSpec(1, ParamType.INT8, 0, 20),
+            # what it does when flightkit stops (read by the preflight; docs/hardware.md)
+            "FS_GCS_ENABLE": ParamSpec(0, ParamType.INT8, 0, 7),
+            "FS_GCS_TIMEOUT": ParamSpec(5.0, ParamType.REAL32, 2.0, 120.0),
+            "MAV_GCS_SYSID": ParamSpec(255, ParamType.INT16, 1, 255),
         }
     ),
     param_bytewise=False,
     firmware_version=(4, 7, 0),
     ev_enable_param="VISO_TYPE",
     reject_result=4,
+    lab_params=MappingProxyType({"FS_GCS_ENABLE": 5.0}),  # land when flightkit's heartbeat stops
     ack_set_mode_message=True,
     vehicle_name="ArduCopter (simulated)",
     posctl_limits=PosCtlLimits.from_ardupilot_params,

@@ -12,10 +12,12 @@ pose. ``flightkit sim``, the demo and the closed-loop flight use it::
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from typing import TYPE_CHECKING, Self
 
 import zenoh
 
+from flightkit.bus.clock_exchange import ClockServer
 from flightkit.bus.keys import Keys
 from flightkit.bus.streams import CameraStreamSelection
 from flightkit.config import LabConfig
@@ -29,13 +31,19 @@ if TYPE_CHECKING:
     from flightkit.sim.fleet import SimFleet
     from flightkit.sim.lab import SimLab
 
-__all__ = ["SimFleetPublishers", "SimLabPublishers", "SimPublishers"]
+__all__ = ["SIM_CLOCK_HOST", "SimFleetPublishers", "SimLabPublishers", "SimPublishers"]
 
 logger = logging.getLogger(__name__)
 
 
+SIM_CLOCK_HOST = "sim"
+"""The simulated lab's host name in the clock exchange (:mod:`flightkit.bus.clock_exchange`)."""
+
+
 class SimPublishers(Running):
-    """A mocap system's publisher and camera publishers on one session; started and stopped together."""
+    """A mocap system's publisher and camera publishers on one session; started and stopped together.
+    While started, the lab's clock is served on ``<ns>/clock/sim`` of every namespace in
+    ``clock_keys``, so a recorder's clock exchange puts the simulated stamps on its time base."""
 
     def __init__(
         self,
@@ -44,12 +52,15 @@ class SimPublishers(Running):
         mocap: SimMocapPublisher,
         cameras: list[SimCameraPublisher],
         owns_session: bool,
+        clock_keys: Sequence[Keys] = (),
     ) -> None:
         self.session = session
         self.mocap_system = mocap_system
         self.mocap = mocap
         self.cameras = cameras
         self._owns_session = owns_session
+        self._clock_keys = tuple(clock_keys)
+        self._clock_servers: list[ClockServer] = []
 
     @property
     def camera(self) -> SimCameraPublisher | None:
@@ -63,6 +74,9 @@ class SimPublishers(Running):
 
     def start(self) -> Self:
         """Start publishing; returns immediately."""
+        if not self._clock_servers:
+            self._clock_servers = [ClockServer(self.session, k, SIM_CLOCK_HOST, self.mocap_system.clock)
+                                   for k in self._clock_keys]
         self.mocap.start()
         for c in self.cameras:
             c.start()
@@ -73,6 +87,9 @@ class SimPublishers(Running):
         for c in self.cameras:
             c.stop()
         self.mocap.stop()
+        servers, self._clock_servers = self._clock_servers, []
+        for server in servers:
+            server.close()
         if self._owns_session:
             self._owns_session = False
             self.session.close()
@@ -90,6 +107,8 @@ class SimLabPublishers(SimPublishers):
         streams: which camera streams (default: colour and depth, extrinsics on tf).
         true_T_world_mocap: where the mocap frame really is (default: the config's).
         owns_session: close ``session`` on :meth:`stop`.
+        render_budget_s: the camera renders every frame within this much simulated time (the
+            clock waits); None skips the frames it cannot render in time.
 
     Start with :meth:`start` or ``with``; both publishers run on their own threads.
     """
@@ -104,6 +123,7 @@ class SimLabPublishers(SimPublishers):
         streams: CameraStreamSelection | None = None,
         true_T_world_mocap: Transform | None = None,  # noqa: N803
         owns_session: bool = False,
+        render_budget_s: float | None = None,
     ) -> None:
         keys = Keys(lab_cfg.vehicle.namespace)
         system = SimMocapSystem(
@@ -124,13 +144,13 @@ class SimLabPublishers(SimPublishers):
             [
                 SimCameraPublisher(
                     session, keys, lab.T_world_body, lab_cfg.camera, lab.clock, streams=streams,
-                    timing=self.timing, true_T_body_camera=true_mount,
+                    timing=self.timing, true_T_body_camera=true_mount, render_budget_s=render_budget_s,
                 )
             ]
             if use_camera
             else []
         )
-        super().__init__(session, system, SimMocapPublisher(session, keys, system), cameras, owns_session)
+        super().__init__(session, system, SimMocapPublisher(session, keys, system), cameras, owns_session, [keys])
 
 
 class SimFleetPublishers(SimPublishers):
@@ -154,4 +174,4 @@ class SimFleetPublishers(SimPublishers):
             if use_camera
         ]
         mocap = SimMocapPublisher(session, fleet.keys_by_body(), fleet.mocap)
-        super().__init__(session, fleet.mocap, mocap, cameras, owns_session)
+        super().__init__(session, fleet.mocap, mocap, cameras, owns_session, [Keys(name) for name in fleet.labs])

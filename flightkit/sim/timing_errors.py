@@ -2,12 +2,15 @@
 
 * the camera's stamps run ``camera_time_offset_s`` late and its clock ``camera_drift_ppm`` fast:
   a frame captured at true time ``t`` is stamped ``t + offset + drift * 1e-6 * (t - start)``;
-* the mocap system stamps each pose on arrival, ``mocap_latency_s`` after it was captured (the
-  published pose is the one of ``latency`` ago, stamped now), as drivers that stamp on arrival do;
+* the mocap poses reach the host ``mocap_latency_s`` after they were captured (the pose handed
+  out now is the one of ``latency`` ago); they carry their capture time as the header stamp, as
+  a system that reports its frame time does, and the bus time (arrival) beside it;
 * the camera is really mounted at ``true_T_body_camera`` (default: where the config says).
 
-So a calibration of the recording should find ``offset - latency`` (camera minus mocap stamp, at
-the start) and ``drift``: :meth:`SimTimingErrors.expected_offset_s`.
+So a calibration of the recording should find ``offset`` (camera minus mocap stamp, at the
+start) and ``drift``: :meth:`SimTimingErrors.expected_offset_s`; the latency shows as the
+difference between the mocap poses' bus time and their capture stamps, and as the age of the
+pose a runner flies on.
 
 All default to zero (no error); ``[sim]`` in the lab config sets them (``camera_time_offset_ms``,
 ``camera_drift_ppm``, ``mocap_latency_ms``, ``true_T_body_camera``).
@@ -36,7 +39,7 @@ class SimTimingErrors:
     Attributes:
         camera_time_offset_s: how late the camera's stamps are, seconds (0-0.1 in the lab's tests).
         camera_drift_ppm: how fast the camera's clock runs, parts per million.
-        mocap_latency_s: capture-to-stamp delay of the mocap poses, seconds.
+        mocap_latency_s: capture-to-arrival delay of the mocap poses, seconds.
     """
 
     camera_time_offset_s: float = 0.0
@@ -59,7 +62,7 @@ class SimTimingErrors:
         """Camera stamp minus mocap stamp of one instant at true time ``at_ns``: what a time calibration
         should find there."""
         drift_s = self.camera_drift_ppm * 1e-6 * (at_ns - start_ns) / _NS
-        return self.camera_time_offset_s + drift_s - self.mocap_latency_s
+        return self.camera_time_offset_s + drift_s
 
     @property
     def any(self) -> bool:

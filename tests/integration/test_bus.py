@@ -21,7 +21,9 @@ import pytest
 import zenoh
 
 from flightkit.bus import msgs as M
-from flightkit.bus.pubsub import _ATTACHMENT, _MAGIC, BusPublisher, BusSample, BusSubscriber, cdr_encoding
+from flightkit.bus.pubsub import _ATTACHMENT_V1 as _ATTACHMENT
+from flightkit.bus.pubsub import _MAGIC_V1 as _MAGIC
+from flightkit.bus.pubsub import BusPublisher, BusSample, BusSubscriber, cdr_encoding
 from flightkit.bus.session import build_zenoh_config, open_session, session_locators
 from flightkit.config import BusConfig, BusMode
 from flightkit.errors import BusError
@@ -116,13 +118,15 @@ def test_pose_stream_between_two_sessions_in_order() -> None:
                     if len(got) == 50:
                         break
                 assert [s.seq for s in got] == list(range(first.seq + 1, first.seq + 51))
-                key, msgtype, seq, stamp_ns, payload = got[7]
-                assert (key, msgtype, seq, stamp_ns) == (
+                key, msgtype, seq, stamp_ns, payload, bus_ns, stamp_source = got[7]
+                assert (key, msgtype, seq, stamp_ns, stamp_source) == (
                     "uav1/mocap/uav1/pose",
                     M.PoseStamped.TYPE,
                     first.seq + 8,
                     1_007,
+                    "host",
                 )
+                assert abs(bus_ns - time.time_ns()) < 60 * 10**9  # put on the bus now (wall clock)
                 assert M.PoseStamped.decode(payload).position_m == (7.0, 0.0, 1.0)
                 assert sub.missed() == 0 and sub.received("uav1/mocap/uav1/pose") == 51
                 with pytest.raises(TimeoutError, match="no message on"):

@@ -34,6 +34,11 @@ def test_demo_short_flight_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixt
     topics = {c.topic: summary.statistics.channel_message_counts[c.id] for c in summary.channels.values()}
     assert topics["/uav1/mocap/uav1/pose"] > 1000
     assert topics["/uav1/camera/color/image"] > 20
+    # the recorder's clock exchange found the simulated lab's clock (served as host "sim")
+    from flightkit.datasets.mcap_reader import RecordingReader
+
+    assert RecordingReader(out / "flight.mcap").clock_offsets()["sim"].exchanges > 0
+    assert "latency per stage, p50 / p99 ms: capture->bus" in text
     # VO ran and was scored; the map exists
     assert "rgbd-pnp vs groundtruth" in text
     # ...from the first frame whose depth is in range (on the ground the camera is too close to

@@ -190,8 +190,9 @@ def test_heartbeat_loss_stops_and_reports(tmp_path: Path) -> None:
     assert s.outcome == "stopped", s.format_table()
     assert "heartbeat_lost" in kinds(s)
     hb = next(f for f in s.faults if f.kind.value == "heartbeat_lost")
-    # 1 s heartbeat period + 1 s timeout after the last heartbeat before the cut
-    assert 1.0 < hb.time_s - run.injected_at_s < 2.6
+    # 1 s heartbeat period + 1 s timeout after the last heartbeat, which came up to a period
+    # before the cut: 1-2 s after it, within a control tick and the status's stamp (50 ms)
+    assert 0.95 < hb.time_s - run.injected_at_s < 2.6
     assert "heartbeat" in hb.message
     # the autopilot's own failsafe took the vehicle (PX4: offboard lost -> position mode)
     assert any(e.startswith("failsafe") for e in run.events)

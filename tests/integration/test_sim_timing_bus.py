@@ -26,7 +26,7 @@ def truth_at(t_s: float) -> Transform:
     return Transform.from_xyz_yaw([math.cos(a), math.sin(a), 1.5], a + math.pi)
 
 
-def test_camera_stamps_late_and_drifting_and_mocap_stamped_on_arrival(tmp_path) -> None:
+def test_camera_stamps_late_and_drifting_and_mocap_stamped_at_capture_with_the_bus_time(tmp_path) -> None:
     port = free_tcp_port()
     pub_s = open_session(BusConfig(listen=(f"tcp/127.0.0.1:{port}",)))
     rec_s = open_session(BusConfig(connect=(f"tcp/127.0.0.1:{port}",)))
@@ -69,6 +69,15 @@ def test_camera_stamps_late_and_drifting_and_mocap_stamped_on_arrival(tmp_path) 
     assert np.max(np.abs(np.array(stamps) - np.array(want))) <= 1_000  # ns: the lock-step clock's rounding
     assert abs(stamps[-1] - true_ns[-1] - (40_000_000 + 500_000)) <= 1_000  # 40 ms late, plus 500 ppm of 1 s
     gt = reader.pose_trajectory("/uav1/mocap/uav1/pose")
-    late = gt.transform(len(gt) - 1)  # stamped at 1 s, captured at 0.975 s
+    late = gt.transform(len(gt) - 1)  # on the bus at 1 s, captured (and stamped) at 0.975 s
     assert late.almost_equal(truth_at(1.0 - 0.025), tol_m=1e-6, tol_rad=1e-6)
+    assert abs(gt.stamps_ns[-1] - (t0_ns + 1_000_000_000 - 25_000_000)) <= 1_000
+    # both times recorded: the capture stamp in the header, the bus time as MCAP publish_time
+    pose_msgs = list(reader.messages(["/uav1/mocap/uav1/pose"]))
+    bus_minus_capture = np.array([m.publish_time_ns - header_stamp_ns(m.data) for m in pose_msgs])
+    assert len(pose_msgs) == MOCAP_HZ + 1 and np.all(np.abs(bus_minus_capture - 25_000_000) <= 1_000)
+    images = list(reader.messages(["/uav1/camera/color/image"]))
+    bus_ns = np.array([m.publish_time_ns for m in images])
+    assert np.all(np.abs(bus_ns - true_ns) <= 1_000)  # on the bus at the true exposure time
+    assert {s.capture_stamp for s in reader.streams} == {"device"}  # images, camera_info, poses and tf
     assert cam.last_T_world_camera.almost_equal(truth_at(1.0) @ mount, tol_m=1e-9, tol_rad=1e-9)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import estimation.pipeline as pipeline
-from estimation.pipeline import Quality, VoOptions, run_vo
+from estimation.pipeline import FlowOptions, Quality, VoOptions, run_vo
 from flightkit.cli.main import main
 from flightkit.datasets.registry import open_sequence
 from flightkit.errors import EstimationError
@@ -23,7 +23,7 @@ pytestmark = pytest.mark.skipif(not KITTI.is_dir(), reason=f"real test data not 
 
 # flow with one altitude depth that KITTI's road (24 m by the stereo altitude) never gives:
 # the failure of issue 15 (every pose at the origin, exit 0), made deterministic.
-NO_ALTITUDE = VoOptions(flow_depth="altitude", max_depth_m=10.0)
+NO_ALTITUDE = VoOptions(estimator=FlowOptions(depth="altitude"), max_depth_m=10.0)
 
 
 def test_flow_without_depth_flags_every_frame_and_raises(caplog: pytest.LogCaptureFixture) -> None:

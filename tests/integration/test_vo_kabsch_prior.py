@@ -1,7 +1,7 @@
 """rgbd-kabsch's prior-guided path on a synthetic lab pattern: the same trajectory as RANSAC's.
 
 When the constant-velocity prediction explains the 3D-3D pairs, rgbd-kabsch fits them by
-Kabsch without RANSAC (``VoOptions.kabsch_prior_gate``); the inlier re-selection that follows
+Kabsch without RANSAC (``KabschOptions.prior_gate``); the inlier re-selection that follows
 ends on the same inliers as RANSAC's, so the trajectory is the same bit for bit (measured on
 7-Scenes, both TUM pairs and the three patterns at 320x240 and 640x480, 2026-11-22).
 """
@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from estimation.pipeline import FramePreparer, Method, Quality, VisualOdometry, VoOptions, run_vo
+from estimation.pipeline import FramePreparer, KabschOptions, Method, Quality, VisualOdometry, VoOptions, run_vo
 from flightkit.apps.sequences import synthetic_sequence
 
 
@@ -43,7 +43,7 @@ def test_prior_guided_rgbd_kabsch_takes_the_prior_path_and_matches_ransac() -> N
     full = run_vo(
         seq,
         "rgbd-kabsch",
-        options=VoOptions(kabsch_prior_gate=0.0),
+        options=VoOptions(estimator=KabschOptions(prior_gate=0.0)),
         init_from_groundtruth=True,
         T_body_camera=seq.T_body_camera,
     )

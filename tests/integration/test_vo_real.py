@@ -16,7 +16,17 @@ import pytest
 from estimation.baselines import run_plain
 from estimation.evaluation import ape, lab_errors, rpe
 from estimation.motion import invert, rotation_angle_rad
-from estimation.pipeline import FramePose, Method, Quality, VisualOdometry, VoOptions, VoResult, run_vo
+from estimation.pipeline import (
+    FlowOptions,
+    FramePose,
+    Method,
+    PnpOptions,
+    Quality,
+    VisualOdometry,
+    VoOptions,
+    VoResult,
+    run_vo,
+)
 from flightkit.datasets.registry import open_sequence
 from flightkit.datasets.trajectory import Trajectory, read_tum
 from flightkit.errors import EstimationError
@@ -50,7 +60,7 @@ def test_kitti06_stereo_320x240(tmp_path: Path) -> None:
 
 def test_kitti06_stereo_full_resolution_with_rigidity_inliers() -> None:
     seq = open_sequence(SHARED_DATA / "kitti06_stereo")
-    res = run_vo(seq, "stereo", options=VoOptions(inliers="rigidity"), init_from_groundtruth=True)
+    res = run_vo(seq, "stereo", options=VoOptions(estimator=PnpOptions(inliers="rigidity")), init_from_groundtruth=True)
     a = ape(res.trajectory(), seq.groundtruth(), "se3")
     assert a.translation.rmse < 0.25  # measured 0.13 m
 
@@ -204,9 +214,12 @@ def test_flow_with_per_point_stereo_depth_handles_a_forward_camera() -> None:
     """The altitude model (one depth) cannot explain a road scene; per-point stereo depth can."""
     seq = open_sequence(SHARED_DATA / "kitti06_stereo")
     gt = seq.groundtruth()
-    per_point = run_vo(seq, "flow", size=(320, 240), options=VoOptions(flow_depth="stereo"), init_from_groundtruth=True)
+    size = (320, 240)
+    per_point = run_vo(
+        seq, "flow", size=size, options=VoOptions(estimator=FlowOptions(depth="stereo")), init_from_groundtruth=True
+    )
     altitude = run_vo(
-        seq, "flow", size=(320, 240), options=VoOptions(flow_depth="altitude"), init_from_groundtruth=True
+        seq, "flow", size=size, options=VoOptions(estimator=FlowOptions(depth="altitude")), init_from_groundtruth=True
     )
     ate_pp = ape(per_point.trajectory(), gt).translation.rmse
     ate_alt = ape(altitude.trajectory(), gt).translation.rmse

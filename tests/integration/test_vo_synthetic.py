@@ -27,7 +27,7 @@ import numpy as np
 import pytest
 
 from estimation.evaluation import ape, lab_errors, rpe
-from estimation.pipeline import Method, Quality, VoOptions, VoResult, run_vo
+from estimation.pipeline import FlowOptions, Method, PnpOptions, Quality, VoOptions, VoResult, run_vo
 from flightkit.apps.sequences import synthetic_sequence
 from flightkit.cli.main import main
 from flightkit.datasets.trajectory import read_tum
@@ -172,7 +172,7 @@ def test_prior_guided_rgbd_pnp_matches_ransac(sequences: dict[str, SimSequence],
     full = run_vo(
         seq,
         "rgbd-pnp",
-        options=VoOptions(pnp_prior_gate_px=0.0, klt_trust_prior_px=0.0),
+        options=VoOptions(estimator=PnpOptions(prior_gate_px=0.0), klt_trust_prior_px=0.0),
         init_from_groundtruth=True,
         T_body_camera=seq.T_body_camera,
     )
@@ -233,10 +233,10 @@ def test_flow_tracks_from_a_reference_frame(sequences: dict[str, SimSequence]) -
     # The rectangle's slow straight legs move the points ~0.4 px a frame at 320x240: the
     # reference moves on after many frames there (measured: 20 references in 211 frames).
     assert 5 < held.keyframe.sum() < len(seq) // 4
-    every = run_vo(seq, "flow", options=VoOptions(flow_ref_px=0.0), init_from_groundtruth=True)
+    every = run_vo(seq, "flow", options=VoOptions(estimator=FlowOptions(ref_px=0.0)), init_from_groundtruth=True)
     assert every.keyframe.all()
     gt = seq.groundtruth()
     for res in (held, every):
         assert ape(res.trajectory(), gt, "se3").translation.rmse < BOUNDS[("rectangle", "flow")][0]
-    with pytest.raises(EstimationError, match="flow_ref_px"):
-        VoOptions(flow_ref_px=-1.0)
+    with pytest.raises(EstimationError, match="ref_px"):
+        FlowOptions(ref_px=-1.0)

@@ -24,7 +24,7 @@ from flightkit.calibration import (
     transform_difference,
     velocity_from_poses,
 )
-from flightkit.calibration.board import BoardSpec, CharucoBoardDetector, aruco_available
+from flightkit.calibration.board import BoardDetector, BoardSpec, aruco_available
 from flightkit.datasets.mcap_reader import transform_from_json
 from flightkit.datasets.trajectory import Trajectory
 from flightkit.errors import CalibrationError, FlightkitError
@@ -273,7 +273,7 @@ def test_result_merges_time_and_hand_eye_and_refuses_foreign_documents() -> None
 @pytest.mark.skipif(not aruco_available(), reason="this OpenCV has no aruco")
 def test_charuco_board_pose_from_a_synthetic_view() -> None:
     K = np.array([[400.0, 0, 319.5], [0, 400.0, 239.5], [0, 0, 1]])  # noqa: N806
-    det = CharucoBoardDetector(BoardSpec(), K)
+    det = BoardDetector(BoardSpec(), K)
     px = 100
     T = Transform.from_xyz_euler_deg([-0.1, -0.12, 0.5], "xyz", [10, -15, 5])  # noqa: N806
     R = T.rotation.as_matrix()  # noqa: N806
@@ -300,7 +300,7 @@ def test_hand_eye_from_a_charuco_board_fixed_in_the_room() -> None:
     from flightkit.calibration.board import board_camera_poses, parse_board
 
     K = np.array([[320.0, 0, 319.5], [0, 320.0, 239.5], [0, 0, 1]])  # noqa: N806
-    det = CharucoBoardDetector(parse_board("5x7:0.04:0.03"), K)
+    det = BoardDetector(parse_board("5x7:0.04:0.03"), K)
     px = 120
     board_img = det.image(px)
 
@@ -328,6 +328,10 @@ def test_hand_eye_from_a_charuco_board_fixed_in_the_room() -> None:
     assert dm < 0.002 and ddeg < 0.2, (dm, ddeg)
     with pytest.raises(CalibrationError, match="SQUARESxSQUARES"):
         parse_board("5:0.04")
+    assert parse_board("apriltag:6x6:0.05:0.04") == BoardSpec(6, 6, 0.05, 0.04, "", "apriltag")
+    assert parse_board("apriltag:6x6:0.05:0.04").dictionary_name == "DICT_APRILTAG_36h11"
+    with pytest.raises(CalibrationError, match="2x2 tags"):
+        parse_board("apriltag:1x6:0.05:0.04")
 
 
 def test_a_vo_reset_mid_flight_is_left_out() -> None:

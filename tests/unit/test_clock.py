@@ -181,6 +181,28 @@ def test_stall_limited_clock_waits_for_a_late_sleeper(monkeypatch: pytest.Monkey
         starved.close()
 
 
+def test_busy_work_takes_at_most_its_budget_of_simulated_time(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Work in ``busy(budget)`` holds a stall-limited clock at the budget until it ends; other
+    clocks are unaffected."""
+    wall = _FakeWall()
+    monkeypatch.setattr("flightkit.clock.time.monotonic", wall)
+    clock = SimClock(speed=5.0, max_wall_step_s=0.04)
+    with clock.busy(0.03):  # a frame the host takes 0.2 s of wall time (1 s simulated) to render
+        for _ in range(40):
+            wall.now_s += 0.005
+            clock.monotonic_s()
+        assert clock.monotonic_s() == pytest.approx(0.03)
+    wall.now_s += 0.005
+    assert clock.monotonic_s() == pytest.approx(0.03 + 0.025)  # runs on once the work is done
+    plain = SimClock(speed=5.0)
+    with plain.busy(0.03):
+        wall.now_s += 0.2
+    assert plain.monotonic_s() == pytest.approx(0.2 * 5.0)  # follows the wall clock
+    lockstep = LockstepClock()
+    with lockstep.busy(0.03), WallClock().busy(0.03):
+        assert lockstep.monotonic_s() == 0.0
+
+
 def test_stall_limited_clock_is_not_held_by_sleepers_that_woke(monkeypatch: pytest.MonkeyPatch) -> None:
     wall = _FakeWall()
     monkeypatch.setattr("flightkit.clock.time.monotonic", wall)

@@ -362,10 +362,11 @@ def test_keyframe_policy_reasons() -> None:
 
 
 def test_vo_options_reject_bad_values() -> None:
-    from estimation.pipeline import VoOptions
+    from estimation.pipeline import EssentialOptions, KabschOptions, PnpOptions, VisualOdometry, VoOptions
+    from flightkit.datasets.base import CameraIntrinsics
 
     with pytest.raises(EstimationError, match="rigidity"):
-        VoOptions(inliers="lmeds")
+        PnpOptions(inliers="lmeds")
     with pytest.raises(EstimationError, match="sqpnp"):
         VoOptions(pnp_method="p3p")
     with pytest.raises(EstimationError, match="depth range"):
@@ -376,14 +377,18 @@ def test_vo_options_reject_bad_values() -> None:
         VoOptions(klt_iters=0)
     with pytest.raises(EstimationError, match="pnp_kernel"):
         VoOptions(pnp_kernel="epnp")
-    with pytest.raises(EstimationError, match="kabsch_first_batch"):
-        VoOptions(kabsch_first_batch=0)
-    with pytest.raises(EstimationError, match="essential_cheirality"):
-        VoOptions(essential_cheirality="triangulate")
-    with pytest.raises(EstimationError, match="essential_prior_iterations=0"):
-        VoOptions(essential_prior_iterations=0)
-    with pytest.raises(EstimationError, match="essential_prior_min_fraction=1.5"):
-        VoOptions(essential_prior_min_fraction=1.5)
+    with pytest.raises(EstimationError, match="first_batch"):
+        KabschOptions(first_batch=0)
+    with pytest.raises(EstimationError, match="cheirality"):
+        EssentialOptions(cheirality="triangulate")
+    with pytest.raises(EstimationError, match="prior_iterations=0"):
+        EssentialOptions(prior_iterations=0)
+    with pytest.raises(EstimationError, match="prior_min_fraction=1.5"):
+        EssentialOptions(prior_min_fraction=1.5)
+    # Another method's options are refused by name.
+    intr = CameraIntrinsics(260.0, 260.0, 159.5, 119.5, 320, 240)
+    with pytest.raises(EstimationError, match="takes PnpOptions"):
+        VisualOdometry("stereo", intr, baseline_m=0.1, options=VoOptions(estimator=KabschOptions()))
 
 
 def test_lk_window_and_pyramid_follow_the_image_size_unless_set() -> None:
@@ -393,13 +398,14 @@ def test_lk_window_and_pyramid_follow_the_image_size_unless_set() -> None:
     small = CameraIntrinsics(260.0, 260.0, 159.5, 119.5, 320, 240)
     large = CameraIntrinsics(520.0, 520.0, 319.5, 239.5, 640, 480)
     vo = VisualOdometry("stereo", small, baseline_m=0.1)
-    assert (vo.klt_win, vo.klt_levels, vo.klt_back_levels, vo.stereo_win) == (9, 3, 1, 9)
-    vo = VisualOdometry("stereo", large, baseline_m=0.1)
-    assert (vo.klt_win, vo.klt_levels, vo.klt_back_levels, vo.stereo_win) == (11, 3, 1, 11)
+    g = vo.geo
+    assert (g.klt_win, g.klt_levels, g.klt_back_levels, g.stereo_win) == (9, 3, 1, 9)
+    g = VisualOdometry("stereo", large, baseline_m=0.1).geo
+    assert (g.klt_win, g.klt_levels, g.klt_back_levels, g.stereo_win) == (11, 3, 1, 11)
     opts = VoOptions(klt_win_px=15, klt_levels=1, klt_back_levels=3, stereo_win_px=21)
-    vo = VisualOdometry("stereo", small, baseline_m=0.1, options=opts)
+    g = VisualOdometry("stereo", small, baseline_m=0.1, options=opts).geo
     # The backward pass never uses more levels than the forward one.
-    assert (vo.klt_win, vo.klt_levels, vo.klt_back_levels, vo.stereo_win) == (15, 1, 1, 21)
+    assert (g.klt_win, g.klt_levels, g.klt_back_levels, g.stereo_win) == (15, 1, 1, 21)
 
 
 def test_refine_pose_stops_when_converged_at_the_full_answer() -> None:
@@ -501,7 +507,7 @@ def test_depth_lookup_rejects_holes_edges_borders_and_range() -> None:
         ],
         np.float32,
     )
-    z = vo._depth_at(depth, px)
+    z = vo.geo.depth_at(depth, px)
     expected = [2.04, 2.0, np.nan, np.nan, np.nan, np.nan, np.nan, np.nan, np.nan, 3.0, np.nan]
     np.testing.assert_allclose(z, np.array(expected), rtol=1e-6)
-    assert vo._depth_at(depth, np.empty((0, 2), np.float32)).shape == (0,)
+    assert vo.geo.depth_at(depth, np.empty((0, 2), np.float32)).shape == (0,)

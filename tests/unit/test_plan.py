@@ -91,3 +91,16 @@ def test_missing_file_is_a_config_error(tmp_path: Path) -> None:
     bad.write_text("[pattern\n")
     with pytest.raises(ConfigError, match="invalid TOML"):
         load_plan(bad)
+
+
+def test_a_safety_key_set_from_the_command_line_survives_the_labs_safety_table(tmp_path: Path) -> None:
+    from flightkit.config import load_config
+
+    lab_toml = tmp_path / "lab.toml"
+    lab_toml.write_text("[safety]\nmax_speed_m_s = 1.5\nallow_hover_on_companion_loss = false\n")
+    lab = load_config(lab_toml)
+    plan = load_plan(Path(__file__).resolve().parents[2] / "examples" / "circle.toml")
+    assert not plan.with_lab_defaults(lab).safety.allow_hover_on_companion_loss
+    merged = plan.with_safety(allow_hover_on_companion_loss=True).with_lab_defaults(lab)
+    assert merged.safety.allow_hover_on_companion_loss
+    assert merged.safety.max_speed_m_s == 1.5  # the lab's other keys still apply

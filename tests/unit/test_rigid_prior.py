@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from estimation.motion import _kabsch, invert, make_T, ransac_rigid, rigid_from_prior, rotation_angle_rad, umeyama
-from estimation.pipeline import VoOptions
+from estimation.pipeline import KabschOptions, VoOptions
 from flightkit.errors import EstimationError
 
 
@@ -67,7 +67,7 @@ def test_rigid_from_prior_declines_when_the_prediction_does_not_explain_the_pair
 
 
 def test_vo_options_reject_bad_kabsch_prior_values() -> None:
-    VoOptions(kabsch_prior_gate=0.0)  # off is fine
-    for bad in ({"kabsch_prior_gate": -1.0}, {"kabsch_prior_min_fraction": 0.0}):
-        with pytest.raises(EstimationError, match="kabsch_prior_gate"):
-            VoOptions(**bad)
+    VoOptions(estimator=KabschOptions(prior_gate=0.0))  # off is fine
+    for bad in ({"prior_gate": -1.0}, {"prior_min_fraction": 0.0}):
+        with pytest.raises(EstimationError, match="prior_gate"):
+            KabschOptions(**bad)

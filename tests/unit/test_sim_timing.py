@@ -49,7 +49,7 @@ def test_camera_stamps_are_late_and_drift_exactly() -> None:
     start = 1_000_000_000_000
     assert err.camera_stamp_ns(start, start) == start + 25_000_000
     assert err.camera_stamp_ns(start + 10**10, start) == start + 10**10 + 25_000_000 + 2_000_000
-    assert err.expected_offset_s(start + 10**10, start) == pytest.approx(0.025 + 0.002 - 0.01)
+    assert err.expected_offset_s(start + 10**10, start) == pytest.approx(0.025 + 0.002)  # the mocap stamps capture
     assert not SimTimingErrors().any and err.any
 
 
@@ -94,3 +94,4 @@ def test_a_pure_translation_flight_is_refused() -> None:
         estimate_time_offset(st.mocap, st.camera)
     with pytest.raises(CalibrationError, match="too little rotation to tell"):
         estimate_hand_eye(st.mocap, st.camera)
+

@@ -10,14 +10,20 @@ sent around it (its reasons). ACKs and texts come from the link's
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from flightkit.clock import Clock
 from flightkit.errors import CommandRejected, LinkError, LinkTimeout
-from flightkit.link.mavlink.encoding import MAV_RESULT_ACCEPTED, MAV_RESULT_IN_PROGRESS, cmd_name, result_name
+from flightkit.link.mavlink.encoding import (
+    MAV_RESULT_ACCEPTED,
+    MAV_RESULT_IN_PROGRESS,
+    cmd_name,
+    decode_param_value,
+    result_name,
+)
 from flightkit.link.mavlink.telemetry import VehicleState
 
 __all__ = ["CommandChannel"]
@@ -123,6 +129,45 @@ class CommandChannel:
             timeout_s,
             lambda: LinkTimeout(f"no COMMAND_ACK for {cmd_name(command)}", "COMMAND_ACK", timeout_s),
         )
+
+    async def read_params(self, names: Sequence[str], bytewise: bool, attempts: int = 2) -> dict[str, float]:
+        """Read parameters with PARAM_REQUEST_READ (by name), re-asking for the missing ones
+        ``attempts`` times within the command timeout; returns the values that arrived
+        (:func:`~flightkit.link.mavlink.encoding.decode_param_value`, ``bytewise`` for PX4)."""
+        target = self._require_target()
+        wanted = list(dict.fromkeys(names))
+        with self._state.lock:
+            for name in wanted:
+                self._state.params.pop(name, None)
+
+        def arrived() -> dict[str, tuple[float, int]]:
+            with self._state.lock:
+                return {n: self._state.params[n] for n in wanted if n in self._state.params}
+
+        def probe() -> dict[str, tuple[float, int]] | None:
+            got = arrived()
+            return got if len(got) == len(wanted) else None
+
+        per_attempt_s = self._timeout_s / max(1, attempts)
+        for _ in range(attempts):
+            got = arrived()
+            for name in wanted:
+                if name not in got:
+                    self._send(
+                        mavlink2.MAVLink_param_request_read_message(target[0], target[1], name.encode(), -1)
+                    )
+            try:
+                await self._state.wait_until(
+                    probe, per_attempt_s, lambda: LinkTimeout("PARAM_VALUE", "PARAM_VALUE", per_attempt_s)
+                )
+                break
+            except LinkTimeout:
+                continue
+        got = arrived()
+        missing = [n for n in wanted if n not in got]
+        if missing:
+            logger.info("no PARAM_VALUE for %s after %.1f s", ", ".join(missing), self._timeout_s)
+        return {n: decode_param_value(wire, ptype, bytewise) for n, (wire, ptype) in got.items()}
 
     async def checked(self, command: int, params: tuple[float, ...], hint: str = "", **kw: Any) -> None:
         """:meth:`command_long`, raising CommandRejected (with nearby STATUSTEXT) unless ACCEPTED."""

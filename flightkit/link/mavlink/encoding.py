@@ -12,6 +12,7 @@ Frames: the inputs are ENU/FLU; NED/FRD appear only in the outputs (through
 from __future__ import annotations
 
 import math
+import struct
 from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -44,6 +45,7 @@ __all__ = [
     "SetpointFields",
     "check_hard_limits",
     "cmd_name",
+    "decode_param_value",
     "encode_odometry",
     "encode_setpoint_message",
     "encode_velocity_setpoint",
@@ -86,6 +88,26 @@ MAV_STATE_ACTIVE = 4
 MAV_RESULT_ACCEPTED = 0
 MAV_RESULT_IN_PROGRESS = 5
 FORCE_DISARM_MAGIC = 21196.0
+
+
+# MAV_PARAM_TYPE -> struct format of the integer held bytewise in PARAM_VALUE's float
+_BYTEWISE_FORMATS = {1: "<B", 2: "<b", 3: "<H", 4: "<h", 5: "<I", 6: "<i"}
+
+
+def decode_param_value(wire: float, param_type: int, bytewise: bool) -> float:
+    """The value of a PARAM_VALUE: ``wire`` as sent, of MAV_PARAM_TYPE ``param_type``.
+
+    ``bytewise``: integer parameters travel as their bytes inside the float (PX4,
+    MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE); otherwise as the float of the integer
+    (ArduPilot, C cast). Integer values come back as whole floats.
+    """
+    fmt = _BYTEWISE_FORMATS.get(int(param_type))
+    if fmt is None:
+        return float(wire)
+    if not bytewise:
+        return float(round(wire)) if math.isfinite(wire) else float(wire)
+    raw = struct.pack("<f", wire)
+    return float(struct.unpack(fmt, raw[: struct.calcsize(fmt)])[0])
 
 
 def heartbeat_type_for_component(component_id: int) -> int:

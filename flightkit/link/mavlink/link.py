@@ -30,7 +30,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -331,6 +331,12 @@ class MavlinkLink(LinkLifetime):
         IN_PROGRESS and errors as :meth:`CommandChannel.command_long
         <flightkit.link.mavlink.commands.CommandChannel.command_long>`)."""
         return await self._commands.command_long(command, params, attempts=attempts, timeout_s=timeout_s)
+
+    async def read_params(self, names: Sequence[str]) -> dict[str, float]:
+        """Read parameters by name (PARAM_REQUEST_READ, asked twice within ``link.command_timeout_s``);
+        returns those that arrived, integers as whole floats (PX4's bytewise encoding decoded)."""
+        self._require_target()
+        return await self._commands.read_params(names, bytewise=self.info.autopilot is Autopilot.PX4)
 
     async def _wait_state(
         self, check: Callable[[Telemetry], bool], what: str, timeout_s: float | None = None

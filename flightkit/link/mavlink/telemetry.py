@@ -96,6 +96,7 @@ class VehicleState:
         )
         self.ack_seq = 0
         self.acks: dict[int, tuple[int, int, float]] = {}  # command -> (seq, result, time)
+        self.params: dict[str, tuple[float, int]] = {}  # PARAM_VALUE: name -> (wire value, MAV_PARAM_TYPE)
         self.rx = 0
         self.rx_rejected = 0
         self.rx_other_components = 0
@@ -169,6 +170,9 @@ class VehicleState:
                 if msg.voltages[0] != 0xFFFF:
                     self.voltage_v = msg.voltages[0] / 1000.0
                 self.remaining_pct = float(msg.battery_remaining) if msg.battery_remaining >= 0 else math.nan
+            elif mtype == "PARAM_VALUE":
+                name = msg.param_id.decode() if isinstance(msg.param_id, bytes) else str(msg.param_id)
+                self.params[name.rstrip("\x00")] = (float(msg.param_value), int(msg.param_type))
             elif mtype == "GLOBAL_POSITION_INT":
                 self.home_amsl_m = (msg.alt - msg.relative_alt) / 1000.0
             elif mtype == "HOME_POSITION":
@@ -195,7 +199,7 @@ class VehicleState:
                 self.other_systems.add(src_sys)
                 return
             self.target = (src_sys, src_comp)
-            self.info = VehicleInfo(src_sys, src_comp, autopilot, int(msg.type))
+            self.info = VehicleInfo(src_sys, src_comp, autopilot, int(msg.type), our_system_id=self._source_system)
             if self._on_target is not None:
                 self._on_target()
         elif (src_sys, src_comp) != self.target:

@@ -14,7 +14,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Sequence
 from typing import Any, TypeVar
 
 from flightkit.config import Autopilot, LinkConfig
@@ -81,6 +81,25 @@ class CommandChannel:
                     timeout_s=self._cfg.command_timeout_s,
                 ) from exc
             raise CommandRejected(command, result.name, reasons, hint) from exc
+
+    async def read_params(self, names: Sequence[str]) -> dict[str, float]:
+        """Read parameters through the param plugin, one by one (float first, then int on
+        WRONG_TYPE); returns those that could be read, integers as whole floats."""
+        from mavsdk.asyncio.plugins.param import ParamError, ParamResult
+
+        param = self._conn.param
+        out: dict[str, float] = {}
+        for name in dict.fromkeys(names):
+            try:
+                try:
+                    out[name] = float(await self.call(f"param {name}", param.get_param_float(name)))
+                except ParamError as exc:
+                    if exc.result not in (ParamResult.WRONG_TYPE, ParamResult.TYPE_MISMATCH):
+                        raise
+                    out[name] = float(await self.call(f"param {name}", param.get_param_int(name)))
+            except (ParamError, LinkTimeout) as exc:
+                logger.info("parameter %s not read: %s", name, exc)
+        return out
 
     async def start_offboard(self) -> None:
         """``offboard.start()``; OffboardError -> CommandRejected or LinkTimeout.

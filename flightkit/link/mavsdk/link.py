@@ -27,7 +27,7 @@ import asyncio
 import contextlib
 import logging
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from flightkit.clock import Clock
@@ -180,6 +180,7 @@ class MavsdkLink(LinkLifetime):
                 component_id=int(hb.get("_component_id", 1)),
                 autopilot=self._autopilot,
                 vehicle_type=int(hb.get("type", 0)),
+                our_system_id=self._cfg.source_system,
             )
         except BaseException:
             await self._teardown()
@@ -351,6 +352,12 @@ class MavsdkLink(LinkLifetime):
                 logger.debug("take-off refused; retrying (ArduPilot's EKF may not have a position yet)")
                 await self._clock.sleep(0.5)
         logger.info("take-off to %.2f m commanded", altitude_m)
+
+    async def read_params(self, names: Sequence[str]) -> dict[str, float]:
+        """Read parameters by name through MAVSDK's param plugin (which decodes PX4's bytewise
+        integers); returns those that could be read, integers as whole floats."""
+        self._require()
+        return await self._commands.read_params(names)
 
     async def land(self) -> None:
         """Land at the current position (``action.land``); returns when the heartbeat shows LAND."""

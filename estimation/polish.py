@@ -1,0 +1,176 @@
+"""The pose polish every keyframe estimator shares: a pose refined on the reprojection of the
+keyframe's points plus this frame's own depth (stereo disparity or depth image), and PnP
+from the constant-velocity prediction without RANSAC.
+
+:class:`PosePolisher` keeps the depth it measured on the last polished pose (``meas``: which
+tracks, their 3D points in the current camera) for the front end to fuse.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from estimation.frontend import CameraGeometry
+from estimation.motion import Motion, make_T, refine_pose
+from estimation.stereo import sparse_disparity
+from estimation.vo_options import VoOptions
+
+__all__ = ["PosePolisher"]
+
+F64 = npt.NDArray[np.float64]
+F32 = npt.NDArray[np.float32]
+U8 = npt.NDArray[np.uint8]
+Meas = tuple[npt.NDArray[np.intp], F64]
+
+
+class PosePolisher:
+    """Pose refinement on reprojection plus the current frame's depth, for one VO run.
+
+    Args:
+        geometry: the run's camera (:class:`~estimation.frontend.CameraGeometry`).
+        options: the shared :class:`VoOptions`.
+        stereo: the depth is measured by sparse stereo (else looked up in depth images).
+    """
+
+    def __init__(self, geometry: CameraGeometry, options: VoOptions, stereo: bool) -> None:
+        self.geo = geometry
+        self.opts = options
+        self.stereo = stereo
+        self.meas: Meas | None = None
+        """The depth measured by the last polish: track indices (into the polished subset,
+        remapped by :meth:`remap`) and their 3D points in the current camera; None if none."""
+
+    def remap(self, subset: npt.NDArray[np.bool_] | npt.NDArray[np.intp]) -> None:
+        """Express ``meas``' indices in the caller's tracks, the polished ones being ``subset``
+        (a mask or indices of the caller's tracks)."""
+        if self.meas is not None:
+            idx: npt.NDArray[np.intp] = np.flatnonzero(subset) if subset.dtype == np.bool_ else subset.astype(np.intp)
+            self.meas = (idx[self.meas[0]], self.meas[1])
+
+    def pnp_from_prior(
+        self,
+        X_kf: F64,
+        px_cur: F32,
+        und_cur: F64,
+        guess: F64,
+        depth_m: F32 | None,
+        gray: U8,
+        right_gray: U8 | None,
+        gate_px: float,
+        min_fraction: float,
+    ) -> Motion | None:
+        """PnP without RANSAC when the constant-velocity prediction already explains the tracks.
+
+        The tracks within ``gate_px`` of their predicted position are fitted by SQPnP (a global
+        solver: its answer does not depend on the prediction); the inliers are the tracks within
+        ``reproj_px`` of that pose, which then gets the depth polish (:meth:`refine`). Accepted
+        when at least ``min_fraction`` of the tracks pass both the gate and the inlier test;
+        else None, and the caller runs RANSAC. (Why not Gauss-Newton from the prediction:
+        docs/estimation-log.md.)
+        """
+        o = self.opts
+        geo = self.geo
+        need = max(o.min_inliers, min_fraction * len(X_kf))
+        gate = geo.reproj_err2(guess, X_kf, und_cur) < gate_px**2
+        if np.count_nonzero(gate) < need:
+            return None
+        Xg = np.ascontiguousarray(X_kf[gate])
+        ug = np.ascontiguousarray(und_cur[gate])
+        ok, rvec, tvec = cv2.solvePnP(Xg, ug, geo.K, None, flags=cv2.SOLVEPNP_SQPNP)
+        if not ok:
+            return None
+        T = make_T(cv2.Rodrigues(rvec)[0], tvec.ravel())
+        mask = geo.reproj_err2(T, X_kf, und_cur) < o.reproj_px**2
+        if np.count_nonzero(mask) < need:
+            return None
+        T = self.refine(T, X_kf[mask], px_cur[mask], und_cur[mask], depth_m, gray, right_gray)
+        self.remap(mask)
+        return Motion(T, mask, True)
+
+    def polish(
+        self,
+        m: Motion,
+        X_kf: F64,
+        px_cur: F32,
+        und_cur: F64,
+        depth_m: F32 | None,
+        gray: U8,
+        right_gray: U8 | None,
+        z_cur: F64 | None = None,
+    ) -> Motion:
+        """The same polish as PnP's for a motion found otherwise (5-point, Kabsch): reprojection
+        of the keyframe points plus this frame's depth (``refine_with_depth``), inliers
+        re-selected on the result; the depth measurements are kept for fusion. ``z_cur``: the
+        depth at ``px_cur`` when the caller has looked it up already (Kabsch)."""
+        o = self.opts
+        if not (m.ok and o.refine_with_depth):
+            return m
+        mask = m.inliers.copy()
+        T = self.refine(
+            m.T_cur_ref,
+            X_kf[mask],
+            px_cur[mask],
+            und_cur[mask],
+            depth_m,
+            gray,
+            right_gray,
+            None if z_cur is None else z_cur[mask],
+        )
+        refined = mask & (self.geo.reproj_err2(T, X_kf, und_cur) < o.reproj_px**2)
+        if np.count_nonzero(refined) < o.min_inliers:
+            self.meas = None
+            return m
+        if self.meas is not None:
+            self.remap(mask)
+            assert self.meas is not None
+            keep = refined[self.meas[0]]
+            self.meas = (self.meas[0][keep], self.meas[1][keep])
+        return Motion(T, refined, True)
+
+    def refine(
+        self,
+        T: F64,
+        X_kf: F64,
+        px: F32,
+        und: F64,
+        depth_m: F32 | None,
+        gray: U8,
+        right_gray: U8 | None,
+        z: F64 | None = None,
+    ) -> F64:
+        """Polish a pose with the current frame's own depth (disparity residuals); ``z``: the
+        depth at ``px`` if already looked up (depth lookup is per pixel). Sets ``meas``."""
+        geo = self.geo
+        if self.stereo:
+            if right_gray is None or geo.rig is None:
+                return refine_pose(T, X_kf, und, geo.K)
+            fb = geo.rig.fx * geo.rig.baseline_m
+            off = np.float32(geo.disparity_offset_px)
+            z_pred = X_kf @ T[2, :3] + T[2, 3]
+            init = (fb / np.maximum(z_pred, 1e-3)).astype(np.float32) - off
+            disp, ok = sparse_disparity(
+                gray,
+                right_gray,
+                px,
+                init,
+                fb_max_px=None,
+                win_px=geo.stereo_win,
+                levels=1,  # the predicted disparity is close: a shallow pyramid is enough
+                min_disparity_px=self.opts.min_disparity_px,
+            )
+            # A disparity far from the prediction is a mismatch, not a measurement.
+            ok &= np.abs(disp - init) < np.maximum(2.0, 0.3 * init)
+            d = np.where(ok, disp + off, np.nan)
+        elif depth_m is not None:
+            fb = geo.intr.fx * geo.virtual_baseline_m
+            if z is None:
+                z = geo.depth_at(depth_m, px)
+            d = fb / z
+        else:
+            return refine_pose(T, X_kf, und, geo.K)
+        good = np.isfinite(d)
+        X_meas = geo.backproject(und[good], fb / d[good])
+        self.meas = (np.flatnonzero(good), X_meas)
+        return refine_pose(T, X_kf, und, geo.K, d, fb, huber_px=1.0)

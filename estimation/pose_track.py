@@ -1,0 +1,67 @@
+"""The pose a VO run carries from frame to frame: the current camera pose, the last measured
+step (the constant-velocity prediction) and the sanity check of a new step."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from estimation.motion import rotation_angle_rad
+
+__all__ = ["PoseTrack", "scale_motion"]
+
+F64 = npt.NDArray[np.float64]
+
+
+def scale_motion(T_step: F64, factor: float) -> F64:
+    """Scale a relative motion (constant velocity for a different dt)."""
+    if abs(factor - 1.0) < 1e-3:
+        return T_step.copy()
+    rv = cv2.Rodrigues(T_step[:3, :3])[0] * factor
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(rv)[0]
+    T[:3, 3] = T_step[:3, 3] * factor
+    return T
+
+
+class PoseTrack:
+    """The camera pose ``T_world_cam``, the last accepted step ``T_step`` (``T_cur_prev`` over
+    ``step_dt_s``) and the previous frame's stamp.
+
+    Args:
+        T_world_cam0: the first camera pose.
+        max_speed_m_s, max_rate_rad_s: a step faster than these is implausible.
+    """
+
+    def __init__(self, T_world_cam0: F64, max_speed_m_s: float, max_rate_rad_s: float) -> None:
+        self.T_world_cam = T_world_cam0.copy()
+        self.T_step: F64 | None = None
+        self.step_dt_s = 0.0
+        self.prev_stamp_ns = 0
+        self.max_speed_m_s = max_speed_m_s
+        self.max_rate_rad_s = max_rate_rad_s
+
+    def dt_s(self, stamp_ns: int) -> float:
+        """Seconds since the previous frame (at least 0.1 ms)."""
+        return max((stamp_ns - self.prev_stamp_ns) * 1e-9, 1e-4)
+
+    def predict(self, dt_s: float) -> F64:
+        """The predicted ``T_cur_prev`` after ``dt_s`` (constant velocity; identity at first)."""
+        if self.T_step is None or self.step_dt_s <= 0:
+            return np.eye(4)
+        return scale_motion(self.T_step, dt_s / self.step_dt_s)
+
+    def plausible(self, T_cur_prev: F64, dt_s: float) -> bool:
+        """The step is within the speed and turn-rate limits."""
+        dt = max(dt_s, 1e-3)
+        t = T_cur_prev[:3, 3].copy()  # as np.linalg.norm: a contiguous copy, sqrt of its dot
+        speed = math.sqrt(float(t.dot(t))) / dt
+        rate = rotation_angle_rad(T_cur_prev[:3, :3]) / dt
+        return speed <= self.max_speed_m_s and rate <= self.max_rate_rad_s
+
+    def measured(self, T_cur_prev: F64, dt_s: float) -> None:
+        """Record a measured (not predicted) step: the next prediction's velocity."""
+        self.T_step, self.step_dt_s = T_cur_prev, dt_s
