@@ -278,6 +278,9 @@ class SimConfig:
     velocity_time_constant_s: float = setting(0.25, min=0.01, max=5.0, help="velocity tracking lag")
     max_accel_m_s2: float = setting(4.0, min=0.1, max=50.0, help="acceleration limit")
     wind_gust_m_s: float = setting(0.0, min=0.0, max=20.0, help="peak wind gust speed")
+    battery_endurance_s: float = setting(
+        0.0, min=0.0, max=36000.0, help="armed time on a full battery, s (0 = the firmware's: ArduPilot 450, PX4 1200)"
+    )
     camera_time_offset_ms: float = setting(
         0.0, min=-1000.0, max=1000.0, help="how late the simulated camera stamps its frames, ms"
     )

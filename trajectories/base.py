@@ -15,6 +15,7 @@ acceleration limit instead of jumping), or a turn in place with a smooth yaw pro
 from __future__ import annotations
 
 import bisect
+import dataclasses
 import enum
 import math
 from collections.abc import Sequence
@@ -37,6 +38,7 @@ __all__ = [
     "trapezoid",
     "trapezoid_duration_s",
     "unwrap_next",
+    "with_acceleration",
 ]
 
 
@@ -71,6 +73,8 @@ class Reference:
         yaw_rate_rad_s: time derivative of ``yaw_rad``.
         lap: zero-based lap index.
         done: True once ``t_s`` is at or past the pattern's duration.
+        accel_m_s2: time derivative of ``vel_m_s``; patterns leave it zero and
+            :func:`with_acceleration` fills it in where it is needed.
     """
 
     t_s: float
@@ -80,6 +84,7 @@ class Reference:
     yaw_rate_rad_s: float = 0.0
     lap: int = 0
     done: bool = False
+    accel_m_s2: Vec3Tuple = (0.0, 0.0, 0.0)
 
 
 @runtime_checkable
@@ -108,6 +113,18 @@ class Pattern(Protocol):
     def reference(self, t_s: float) -> Reference:
         """The reference at pattern time ``t_s`` (clamped to [0, duration_s]); pure, returns immediately."""
         ...
+
+
+def with_acceleration(pattern: Pattern, ref: Reference, step_s: float = 0.01) -> Reference:
+    """``ref`` (from ``pattern.reference(ref.t_s)``) with its acceleration: the velocity's central
+    difference over ``step_s`` either side (one-sided at the pattern's start)."""
+    t0 = max(0.0, ref.t_s - step_s)
+    t1 = ref.t_s + step_s
+    v0 = pattern.reference(t0).vel_m_s
+    v1 = pattern.reference(t1).vel_m_s
+    span = t1 - t0
+    acc = ((v1[0] - v0[0]) / span, (v1[1] - v0[1]) / span, (v1[2] - v0[2]) / span)
+    return dataclasses.replace(ref, accel_m_s2=acc)
 
 
 def heading_rad(p0: Sequence[float], p1: Sequence[float]) -> float:

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import logging
 import math
 import time
@@ -35,8 +36,8 @@ from flightkit.errors import LinkTimeout, MocapBodyMissing
 from flightkit.frames import Transform, Vec3Tuple
 from flightkit.link.base import FlightMode, VehicleLink, VelocitySetpoint
 from flightkit.mocap.base import MocapPose, MocapSource
-from trajectories.base import Pattern, Reference
-from trajectories.controller import VelocityController
+from trajectories.base import Pattern, Reference, with_acceleration
+from trajectories.controller import SetpointKind, VelocityController
 from trajectories.flightlog import FlightLog, FlightSummary, PhaseStats
 from trajectories.supervisor import (
     ACTION_OF,
@@ -387,6 +388,21 @@ class ControlLoop:
             epoch_s=epoch_s,
         )
 
+    def _bounded_position(self, sp: VelocitySetpoint, floor_m: float | None) -> VelocitySetpoint:
+        """``sp`` with its position target (if any) inside the geofence and not below ``floor_m``
+        (a landing reference that reaches below the floor keeps pressing down through the
+        velocity alone)."""
+        if sp.pos_m is None:
+            return sp
+        fence = self.safety.geofence
+        lo = list(fence.min_m) if fence.enabled else [-math.inf] * 3
+        hi = list(fence.max_m) if fence.enabled else [math.inf] * 3
+        if floor_m is not None:
+            lo[2] = max(lo[2], floor_m)
+        p = sp.pos_m
+        bounded = (min(max(p[0], lo[0]), hi[0]), min(max(p[1], lo[1]), hi[1]), min(max(p[2], lo[2]), hi[2]))
+        return sp if bounded == p else dataclasses.replace(sp, pos_m=bounded)
+
     def tick(self, ph: _Phase) -> LogRow:
         """One cycle of phase ``ph``: pose, reference, supervision, control, send; returns the row.
 
@@ -437,8 +453,10 @@ class ControlLoop:
                     dt = 0.0
             ph.t_pattern_s += dt
             ref = pattern.reference(ph.t_pattern_s)
+            if ph.controller.config.setpoint is SetpointKind.PVA:
+                ref = with_acceleration(pattern, ref)
             out = ph.controller.step(ref, ctl_pos, ctl_yaw, dt)
-            sp = out.setpoint
+            sp = self._bounded_position(out.setpoint, ph.floor_m)
             err = out.error_norm_m
             if ph.floor_m is not None and ref.pos_m[2] < ph.floor_m:
                 err = math.dist((ref.pos_m[0], ref.pos_m[1], ph.floor_m), ctl_pos)

@@ -12,6 +12,13 @@ the autopilot is told to use:
 * ``WORLD`` (local NED at the wire): when the autopilot fuses mocap so its local frame is the
   world; yaw may be commanded as an absolute setpoint or as a rate.
 
+With ``setpoint = "pva"`` (LOCAL_NED only) the velocity above is sent together with the
+reference position as a position target and the reference acceleration as feed-forward
+(SET_POSITION_TARGET_LOCAL_NED with all three), so the autopilot's own position controller
+tracks the reference without the lag of its velocity shaping; the mocap-error term stays in
+the velocity. The acceleration is limited in norm (``max_accel_m_s2``); the control loop keeps
+the position inside the geofence.
+
 The yaw rate command is ``yaw_rate_ref + Kp_yaw * wrap(yaw_ref - yaw)``. With
 ``feedforward = False`` the controller reduces to the lab's original P-only law (no ``v_ref``,
 no ``yaw_rate_ref``), kept so the improvement can be measured side by side.
@@ -30,7 +37,7 @@ from flightkit.frames import Vec3Tuple, wrap_angle_rad
 from flightkit.link.base import SetpointFrame, VelocitySetpoint
 from trajectories.base import Reference
 
-__all__ = ["ControlOutput", "ControllerConfig", "OutputFrame", "VelocityController", "YawControl"]
+__all__ = ["ControlOutput", "ControllerConfig", "OutputFrame", "SetpointKind", "VelocityController", "YawControl"]
 
 
 class OutputFrame(enum.Enum):
@@ -42,6 +49,13 @@ class OutputFrame(enum.Enum):
     @property
     def setpoint_frame(self) -> SetpointFrame:
         return SetpointFrame.BODY if self is OutputFrame.BODY else SetpointFrame.WORLD
+
+
+class SetpointKind(enum.Enum):
+    """What the setpoints carry: a velocity (the baseline), or position + velocity + acceleration."""
+
+    VELOCITY = "velocity"
+    PVA = "pva"
 
 
 class YawControl(enum.Enum):
@@ -67,19 +81,34 @@ class ControllerConfig:
     feedforward: bool = setting(True, help="add the reference velocity and yaw rate (false: P-only law)")
     output_frame: OutputFrame = setting(OutputFrame.BODY, help="body or local_ned")
     yaw_control: YawControl = setting(YawControl.RATE, help="rate or setpoint (setpoint needs local_ned)")
+    setpoint: SetpointKind = setting(
+        SetpointKind.VELOCITY, help="velocity, or pva: position + velocity + acceleration (needs local_ned)"
+    )
+    max_accel_m_s2: float = setting(2.0, min=0.1, max=8.0, help="acceleration feed-forward limit (pva), m/s^2")
 
     @staticmethod
     def _check(obj: ControllerConfig, path: str, key: str) -> None:
         from flightkit.errors import ConfigError
 
-        if obj.yaw_control is YawControl.SETPOINT and obj.output_frame is OutputFrame.BODY:
-            raise ConfigError(
-                path,
-                f"{key}.yaw_control" if key else "yaw_control",
+        if obj.output_frame is not OutputFrame.BODY:
+            return
+        # settings that need the autopilot's local frame: (name, in use, why not in the body frame, what to do)
+        for name, used, why, fix in (
+            (
+                "setpoint",
+                obj.setpoint is SetpointKind.PVA,
+                "position targets are in the autopilot's local frame, which the body frame is not",
+                "use setpoint = 'velocity', or output_frame = 'local_ned' when the autopilot fuses mocap",
+            ),
+            (
+                "yaw_control",
+                obj.yaw_control is YawControl.SETPOINT,
                 "an absolute yaw setpoint is meaningless in the body frame",
                 "use yaw_control = 'rate', or output_frame = 'local_ned' when the autopilot fuses mocap",
-                obj.yaw_control.value,
-            )
+            ),
+        ):
+            if used:
+                raise ConfigError(path, f"{key}.{name}" if key else name, why, fix, getattr(obj, name).value)
 
 
 @dataclass(frozen=True, slots=True)
@@ -167,12 +196,22 @@ class VelocityController:
             out = (cy * vx + sy * vy, -sy * vx + cy * vy, vz)
         else:
             out = (vx, vy, vz)
+        target_m: Vec3Tuple | None = None
+        accel_m_s2: Vec3Tuple | None = None
+        if c.setpoint is SetpointKind.PVA:
+            target_m = ref.pos_m
+            ax, ay, az = ref.accel_m_s2
+            norm = math.sqrt(ax * ax + ay * ay + az * az)
+            k = min(1.0, c.max_accel_m_s2 / norm) if norm > 0.0 else 1.0
+            accel_m_s2 = (ax * k, ay * k, az * k)
         if c.yaw_control is YawControl.SETPOINT:
-            sp = VelocitySetpoint(out, frame, yaw_rad=wrap_angle_rad(ref.yaw_rad))
+            sp = VelocitySetpoint(
+                out, frame, yaw_rad=wrap_angle_rad(ref.yaw_rad), pos_m=target_m, accel_m_s2=accel_m_s2
+            )
         else:
             rate = ff_rate + c.kp_yaw * yaw_err
             rate = min(max(rate, -c.max_yaw_rate_rad_s), c.max_yaw_rate_rad_s)
-            sp = VelocitySetpoint(out, frame, yaw_rate_rad_s=rate)
+            sp = VelocitySetpoint(out, frame, yaw_rate_rad_s=rate, pos_m=target_m, accel_m_s2=accel_m_s2)
         return ControlOutput(sp, (vx, vy, vz), (ex, ey, ez), yaw_err, sat_h or sat_v)
 
     def hold(self) -> VelocitySetpoint:

@@ -35,7 +35,7 @@ from flightkit.mocap.base import MocapSource
 from trajectories.base import Pattern, PiecewisePattern, Reference, Turn
 from trajectories.circle import Circle
 from trajectories.control_loop import ControlLoop, LiftOff, Status
-from trajectories.controller import ControllerConfig, VelocityController
+from trajectories.controller import ControllerConfig, SetpointKind, VelocityController
 from trajectories.fault_reactor import FaultReactor
 from trajectories.flightlog import FlightLog, FlightSummary
 from trajectories.hold import Hold
@@ -51,6 +51,8 @@ logger = logging.getLogger(__name__)
 REFERENCE_HEADROOM = 0.8
 """Take-off, transit and landing references move at most this fraction of the controller's speed
 limits, so the position feedback keeps authority to correct the lag (docs/flying.md)."""
+LIFT_SETTLED_M_S = 0.1
+"""With position targets, the autopilot's own lift counts as over below this climb rate (m/s)."""
 
 
 def with_laps(pattern: Pattern, laps: int) -> Pattern:
@@ -354,6 +356,16 @@ class FlightRunner:
         supervising, without sending, until near ``lift_m`` up."""
         lifted_z_m = pos[2] + lift_m - 0.05
         rate_hz = max(self.settings.rate_hz, 20.0)
+        # With position targets our climb starts from rest, so let the firmware's lift finish
+        # (it overshoots its own height: ArduCopter's 0.3 m lift tops out at 0.41 m) first.
+        settle = self.loop.controller.config.setpoint is SetpointKind.PVA
+
+        def lifted(_t: float, p: Vec3Tuple) -> bool:
+            if p[2] < lifted_z_m:
+                return False
+            vz = self.link.telemetry.vel_local_enu_m_s[2]
+            return not settle or (math.isfinite(vz) and abs(vz) < LIFT_SETTLED_M_S)
+
         await self.link.stop_setpoint_stream()
         try:
             await self.link.takeoff(lift_m)
@@ -362,7 +374,7 @@ class FlightRunner:
                 "takeoff",
                 send=False,
                 timeout_s=60.0,
-                until=lambda _t, p: p[2] >= lifted_z_m,
+                until=lifted,
             )
         except BaseException:
             # whatever reacts (a fault's hold and land, a cancelled flight's landing) streams

@@ -154,7 +154,7 @@ class ExternalPoseKind(enum.Enum):
 
 @dataclass(frozen=True, slots=True)
 class VelocitySetpoint:
-    """A velocity command with a yaw or yaw-rate target.
+    """A velocity command with a yaw or yaw-rate target, optionally a full kinematic target.
 
     Attributes:
         vel_m_s: (x, y, z) velocity in ``frame`` (ENU for WORLD, FLU for BODY), m/s.
@@ -163,18 +163,34 @@ class VelocitySetpoint:
         yaw_rate_rad_s: yaw rate, positive counter-clockwise (seen from above); None = not
             commanded. Give at most one of ``yaw_rad`` and ``yaw_rate_rad_s``; giving neither
             holds the current heading (yaw rate 0).
+        pos_m: position target in the autopilot's local frame (ENU, WORLD frame only); the
+            velocity is then its feed-forward. None = velocity control.
+        accel_m_s2: acceleration feed-forward (ENU, WORLD frame only, with ``pos_m``).
     """
 
     vel_m_s: tuple[float, float, float]
     frame: SetpointFrame = SetpointFrame.WORLD
     yaw_rad: float | None = None
     yaw_rate_rad_s: float | None = None
+    pos_m: tuple[float, float, float] | None = None
+    accel_m_s2: tuple[float, float, float] | None = None
 
     def __post_init__(self) -> None:
-        v = tuple(float(x) for x in self.vel_m_s)
-        if len(v) != 3 or not all(math.isfinite(x) for x in v):
-            raise SetpointError(f"velocity setpoint must be 3 finite numbers, got {self.vel_m_s!r}")
-        object.__setattr__(self, "vel_m_s", v)
+        for name in ("vel_m_s", "pos_m", "accel_m_s2"):
+            raw = getattr(self, name)
+            if raw is None:
+                continue
+            v = tuple(float(x) for x in raw)
+            if len(v) != 3 or not all(math.isfinite(x) for x in v):
+                raise SetpointError(f"setpoint {name} must be 3 finite numbers, got {raw!r}")
+            object.__setattr__(self, name, v)
+        if (self.pos_m is not None or self.accel_m_s2 is not None) and self.frame is not SetpointFrame.WORLD:
+            raise SetpointError(
+                "a position or acceleration target needs the WORLD frame (the autopilot's local frame); "
+                "use output_frame = 'local_ned' with setpoint = 'pva'"
+            )
+        if self.accel_m_s2 is not None and self.pos_m is None:
+            raise SetpointError("an acceleration feed-forward needs a position target too; give pos_m")
         if self.yaw_rad is not None and self.yaw_rate_rad_s is not None:
             raise SetpointError("give yaw_rad or yaw_rate_rad_s, not both")
         for name in ("yaw_rad", "yaw_rate_rad_s"):
@@ -187,8 +203,19 @@ class VelocitySetpoint:
         """Stop: zero velocity, zero yaw rate."""
         return VelocitySetpoint((0.0, 0.0, 0.0), frame, yaw_rate_rad_s=0.0)
 
-    def check_limits(self, max_horizontal_m_s: float, max_vertical_m_s: float, max_yaw_rate_rad_s: float) -> None:
+    def check_limits(
+        self,
+        max_horizontal_m_s: float,
+        max_vertical_m_s: float,
+        max_yaw_rate_rad_s: float,
+        max_accel_m_s2: float = math.inf,
+    ) -> None:
         """Raise SetpointError if this setpoint exceeds the given limits."""
+        if self.accel_m_s2 is not None and math.hypot(*self.accel_m_s2) > max_accel_m_s2 + 1e-9:
+            raise SetpointError(
+                f"acceleration {math.hypot(*self.accel_m_s2):.3f} m/s^2 exceeds the limit {max_accel_m_s2:.3f} m/s^2; "
+                "soften the reference or raise the limit in config"
+            )
         vh = math.hypot(self.vel_m_s[0], self.vel_m_s[1])
         if vh > max_horizontal_m_s + 1e-9:
             raise SetpointError(

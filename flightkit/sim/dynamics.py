@@ -45,6 +45,8 @@ class DynamicsParams:
     Attributes:
         velocity_time_constant_s: first-order lag of velocity tracking.
         max_accel_m_s2: limit on the norm of the commanded acceleration.
+        accel_time_constant_s: first-order lag between the commanded and the achieved
+            acceleration (the attitude loop's response; 0 = immediate).
         yaw_time_constant_s: first-order lag of yaw-rate tracking.
         max_yaw_rate_rad_s: yaw rate limit.
         yaw_gain_1_s: yaw error (rad) to yaw-rate (rad/s) gain when an absolute yaw is commanded.
@@ -63,6 +65,7 @@ class DynamicsParams:
 
     velocity_time_constant_s: float = 0.25
     max_accel_m_s2: float = 4.0
+    accel_time_constant_s: float = 0.0
     yaw_time_constant_s: float = 0.1
     max_yaw_rate_rad_s: float = math.radians(90.0)
     yaw_gain_1_s: float = 2.5
@@ -86,7 +89,8 @@ class DynamicsParams:
         ):
             if not getattr(self, name) > 0.0:
                 raise SimError(f"DynamicsParams.{name} must be > 0, got {getattr(self, name)}; give a positive value")
-        for name in ("spinup_s", "thrust_ramp_s", "wind_gust_m_s", "pos_noise_m", "pos_wander_m", "drag_1_s"):
+        nonneg = ("accel_time_constant_s", "spinup_s", "thrust_ramp_s", "wind_gust_m_s", "pos_noise_m", "pos_wander_m")
+        for name in (*nonneg, "drag_1_s"):
             if getattr(self, name) < 0.0:
                 raise SimError(f"DynamicsParams.{name} must be >= 0, got {getattr(self, name)}; give 0 (off) or more")
 
@@ -176,12 +180,14 @@ class QuadDynamics:
             raise SimError(f"initial position is below the floor (z = {self._pos[2]:.3f} m); give z >= 0")
         self._vel = np.zeros(3)
         self._acc = np.zeros(3)
+        self._acc_ctrl = np.zeros(3)  # the acceleration the inner loops achieve, before wind
         self._yaw = wrap_angle_rad(float(yaw_rad))
         self._yaw_rate = 0.0
         self._on_ground = bool(self._pos[2] <= _GROUND_EPS_M)
         self._armed = False
         self._armed_at_s = 0.0
         self._cmd_vel = np.zeros(3)
+        self._cmd_acc = np.zeros(3)
         self._cmd_yaw: float | None = None
         self._cmd_yaw_rate = 0.0
         self._gusts: list[_Gust] = []
@@ -222,20 +228,31 @@ class QuadDynamics:
         self._armed = armed
         if not armed:
             self._cmd_vel = np.zeros(3)
+            self._cmd_acc = np.zeros(3)
             self._cmd_yaw = None
             self._cmd_yaw_rate = 0.0
 
     def command(
-        self, vel_enu_m_s: npt.ArrayLike, yaw_rad: float | None = None, yaw_rate_rad_s: float | None = None
+        self,
+        vel_enu_m_s: npt.ArrayLike,
+        yaw_rad: float | None = None,
+        yaw_rate_rad_s: float | None = None,
+        accel_enu_m_s2: npt.ArrayLike | None = None,
     ) -> None:
         """Set the velocity target (world ENU) and an absolute heading or a yaw rate.
 
         With neither ``yaw_rad`` nor ``yaw_rate_rad_s`` the heading is held (rate 0).
+        ``accel_enu_m_s2`` is an acceleration feed-forward added to the velocity loop's own.
         """
         v = np.asarray(vel_enu_m_s, dtype=np.float64).reshape(3)
-        if not np.all(np.isfinite(v)):
-            raise SetpointError(f"velocity command must be finite, got {v} m/s; check the controller output for NaN")
+        a = np.zeros(3) if accel_enu_m_s2 is None else np.asarray(accel_enu_m_s2, dtype=np.float64).reshape(3)
+        if not (np.all(np.isfinite(v)) and np.all(np.isfinite(a))):
+            raise SetpointError(
+                f"velocity command must be finite, got {v} m/s ({a} m/s^2 feed-forward); "
+                "check the controller output for NaN"
+            )
         self._cmd_vel = v.copy()
+        self._cmd_acc = a.copy()
         self._cmd_yaw = None if yaw_rad is None else wrap_angle_rad(float(yaw_rad))
         self._cmd_yaw_rate = 0.0 if yaw_rate_rad_s is None else float(yaw_rate_rad_s)
 
@@ -251,6 +268,7 @@ class QuadDynamics:
         self._pos[2] = max(self._pos[2], 0.0)
         self._vel[:] = 0.0
         self._acc[:] = 0.0
+        self._acc_ctrl = np.zeros(3)
         if yaw_rad is not None:
             self._yaw = wrap_angle_rad(float(yaw_rad))
         self._yaw_rate = 0.0
@@ -352,6 +370,7 @@ class QuadDynamics:
             if self._on_ground:
                 self._vel[:] = 0.0
                 self._acc[:] = 0.0
+                self._acc_ctrl = np.zeros(3)
                 self._yaw_rate = 0.0
             else:  # falling: gravity and drag
                 acc = p.drag_1_s * (self._wind - self._vel)
@@ -372,14 +391,20 @@ class QuadDynamics:
             if cmd[2] <= 0.0:
                 self._vel[:] = 0.0
                 self._acc[:] = 0.0
+                self._acc_ctrl = np.zeros(3)
                 self._yaw_rate = 0.0
                 self._t += h
                 return
 
         acc = (cmd - self._vel) / p.velocity_time_constant_s
+        if not self._on_ground:
+            acc = acc + self._cmd_acc
         norm = float(np.linalg.norm(acc))
         if norm > p.max_accel_m_s2:
             acc *= p.max_accel_m_s2 / norm
+        if p.accel_time_constant_s > 0.0 and not self._on_ground:
+            acc = self._acc_ctrl + (acc - self._acc_ctrl) * min(1.0, h / p.accel_time_constant_s)
+        self._acc_ctrl = acc
         if not self._on_ground:
             # the velocity loop trims out drag at the vehicle's own speed; wind is the disturbance
             acc = acc + p.drag_1_s * self._wind
@@ -409,6 +434,7 @@ class QuadDynamics:
             if not self._on_ground:
                 self._vel[:] = 0.0
                 self._acc[:] = 0.0
+                self._acc_ctrl = np.zeros(3)
                 self._yaw_rate = 0.0
             self._on_ground = True
         elif self._pos[2] > _GROUND_EPS_M:

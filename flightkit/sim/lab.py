@@ -97,9 +97,12 @@ class SimLab(Running):
             wind_gust_m_s=sim.wind_gust_m_s,
             spinup_s=self.personality.spinup_s,
             thrust_ramp_s=self.personality.thrust_ramp_s,
+            accel_time_constant_s=self.personality.accel_time_constant_s,
         )
         self.dynamics = QuadDynamics(params, start_pos_enu_m, start_yaw_rad)
         opts = options or AutopilotOptions()
+        if opts.battery_endurance_s is None and sim.battery_endurance_s > 0.0:
+            opts = replace(opts, battery_endurance_s=sim.battery_endurance_s)
         if url is not None:
             opts = replace(opts, url=url)
         if heading_offset_rad is not None:

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import enum
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
 
@@ -30,6 +30,7 @@ from flightkit.link.modes import (
     PX4_MODES,
     px4_custom_mode,
 )
+from flightkit.sim.posctl import PosCtlLimits
 
 __all__ = [
     "ARDUPILOT",
@@ -115,6 +116,16 @@ class Personality:
         reject_result: MAV_RESULT sent when arming, a mode change or a take-off is refused
             (PX4 1 TEMPORARILY_REJECTED, ArduPilot 4 FAILED).
         ack_set_mode_message: answer the SET_MODE message with a COMMAND_ACK (ArduPilot does).
+        posctl_limits: the firmware's position-controller limits from its parameters; None =
+            velocity setpoints reach the vehicle unshaped (PX4 offboard velocity control).
+        takeoff_climb_max_m_s: the take-off's climb-speed cap over the firmware's climb parameter
+            (ArduCopter: 0.5 m/s, fitted to the measured 0.41 m top of its 0.3 m lift).
+        accel_time_constant_s: lag of the achieved acceleration behind the commanded one
+            (ArduCopter: its attitude input shaping, ATC_INPUT_TC 0.15 s).
+        takeoff_spool_s: after a take-off command, the vehicle stays on the ground this long
+            (ArduCopter spools the motors and ramps the take-off throttle first).
+        battery_endurance_s: armed time from a full to an empty battery (the sim options may
+            override it).
     """
 
     autopilot: Autopilot
@@ -150,6 +161,11 @@ class Personality:
     lab_params: Mapping[str, float] = field(default_factory=dict)
     ack_set_mode_message: bool = False
     vehicle_name: str = field(default="")
+    posctl_limits: Callable[[Mapping[str, float]], PosCtlLimits] | None = None
+    takeoff_spool_s: float = 0.0
+    accel_time_constant_s: float = 0.0
+    takeoff_climb_max_m_s: float = math.inf
+    battery_endurance_s: float = 1200.0
 
     def mode_of(self, custom_mode: int) -> FlightMode | None:
         """The flight mode a custom_mode number means, or None when it is not one of ours."""
@@ -294,6 +310,12 @@ ARDUPILOT = Personality(
     params=MappingProxyType(
         {
             "GUID_TIMEOUT": ParamSpec(3.0, ParamType.REAL32, 0.1, 5.0),
+            "WPNAV_ACCEL": ParamSpec(250.0, ParamType.REAL32, 50.0, 500.0),
+            "WPNAV_ACCEL_Z": ParamSpec(100.0, ParamType.REAL32, 50.0, 500.0),
+            "PSC_JERK_XY": ParamSpec(5.0, ParamType.REAL32, 1.0, 20.0),
+            "PSC_JERK_Z": ParamSpec(5.0, ParamType.REAL32, 5.0, 50.0),
+            "PSC_POSXY_P": ParamSpec(1.0, ParamType.REAL32, 0.5, 2.0),
+            "PSC_POSZ_P": ParamSpec(1.0, ParamType.REAL32, 1.0, 3.0),
             "WPNAV_SPEED": ParamSpec(500.0, ParamType.REAL32, 10.0, 2000.0),
             "WPNAV_SPEED_UP": ParamSpec(250.0, ParamType.REAL32, 10.0, 1000.0),
             "WPNAV_SPEED_DN": ParamSpec(150.0, ParamType.REAL32, 10.0, 500.0),
@@ -320,6 +342,11 @@ ARDUPILOT = Personality(
     lab_params=MappingProxyType({"FS_GCS_ENABLE": 5.0}),  # land when flightkit's heartbeat stops
     ack_set_mode_message=True,
     vehicle_name="ArduCopter (simulated)",
+    posctl_limits=PosCtlLimits.from_ardupilot_params,
+    takeoff_spool_s=2.5,
+    accel_time_constant_s=0.15,
+    takeoff_climb_max_m_s=0.5,
+    battery_endurance_s=450.0,
 )
 
 

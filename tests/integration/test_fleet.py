@@ -74,7 +74,11 @@ def test_three_vehicles_fly_one_circle_together(tmp_path: Path) -> None:
         assert 0.0 <= skew_s < 0.1, skew_s  # one common start, measured
         for n, summary in fleet.summaries().items():
             assert summary.laps_completed == 1, (n, summary.format_table())
-            assert summary.phase("pattern").rms_error_m < 0.05, (n, summary.format_table())
+            # ArduCopter's position controller lags a velocity stream (docs/sim.md "Fidelity"):
+            # real 15 mm RMS on a 40 s circle; the lag error grows with speed x turn rate, 4x on
+            # this 20 s one, so its bound is 15 mm x 4 with the 30 % margin (the sim: ~51 mm)
+            bound_m = 0.08 if n == "uav3" else 0.05
+            assert summary.phase("pattern").rms_error_m < bound_m, (n, summary.format_table())
             assert not [f for f in summary.faults if f.kind is not FaultKind.MOCAP_STALE], summary.format_table()
         for n, lab_ in sim.labs.items():
             assert not lab_.autopilot.armed, n

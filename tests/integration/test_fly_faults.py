@@ -25,9 +25,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from flightkit.apps.sim_session import SimSession, sim_session
+from flightkit.apps.sim_session import SimSession, fly_plan_in_sim, sim_session
 from flightkit.clock import ONE_PROCESS_WALL_STEP_S
-from flightkit.config import Autopilot
+from flightkit.config import Autopilot, LabConfig
 from flightkit.errors import MocapBodyMissing, SafetyAbort
 from flightkit.link.base import FlightMode
 from flightkit.link.mavlink import MavlinkLink
@@ -486,3 +486,50 @@ def test_fly_command_lands_on_sigint(tmp_path: Path) -> None:
     assert summary["phases"][-1]["name"] == "land"
     data = read_flight_log(log)
     assert data["pos_z_m"][-1] < 0.15  # it came down under control before handing over the touchdown
+
+
+def test_battery_drains_to_low_mid_plan_and_lands(tmp_path: Path) -> None:
+    """The simulated ArduCopter's battery drains while armed (450 s from full to empty by default:
+    ``battery_low`` at 20 % after 6 min, as in ArduCopter SITL); with a 40 s battery it crosses
+    the plan's 20 % limit 32 s after arming, in the middle of the circle, and the runner lands."""
+    cfg = LabConfig()
+    cfg = dataclasses.replace(cfg, sim=dataclasses.replace(cfg.sim, battery_endurance_s=40.0))
+    log = tmp_path / "flight.csv"
+    sessions: list[SimSession] = []
+    armed_s: list[float] = []
+    clock_minus_flight_s: list[float] = []  # the clock's time at flight time 0
+
+    def on_session(session: SimSession) -> None:
+        sessions.append(session)
+        session.lab.events.append(lambda e: armed_s.append(e.stamp_s) if e.kind == "armed" else None)
+
+    def on_status(st: Status) -> None:
+        if not clock_minus_flight_s:
+            clock_minus_flight_s.append(sessions[0].clock.monotonic_s() - st.t_s)
+
+    s = asyncio.run(
+        fly_plan_in_sim(
+            circle_plan(),
+            cfg,
+            autopilot="ardupilot",
+            speed=SPEED,
+            log_path=log,
+            on_session=on_session,
+            on_status=on_status,
+        )
+    )
+    assert s.outcome == "landed_early", s.format_table()
+    assert kinds(s) == ["battery_low"], s.format_table()
+    low = fault(s, "battery_low")
+    assert low.action is Action.LAND
+    assert re.search(r"battery at 1[5-9] %", low.message), low.message
+    # mid-plan: during the pattern, which had started before the charge ran down
+    rows = read_flight_log(log)
+    t = np.asarray(rows["t_s"])
+    at_fault = np.asarray(rows["phase"])[np.searchsorted(t, low.time_s) - 1]
+    assert at_fault == "pattern", s.format_table()
+    assert s.phases[-1].name == "land" and s.laps_completed == 0
+    # the drain's own timing: 80 % of 40 s armed, give or take the 2 Hz SYS_STATUS and a cycle
+    assert len(armed_s) == 1 and clock_minus_flight_s
+    drained_s = low.time_s + clock_minus_flight_s[0] - armed_s[0]
+    assert 31.8 <= drained_s <= 33.5, drained_s

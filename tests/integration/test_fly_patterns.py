@@ -29,6 +29,7 @@ import numpy as np
 import pytest
 
 from flightkit.apps.sim_session import fly_plan_in_sim
+from trajectories.controller import OutputFrame, SetpointKind
 from trajectories.flightlog import FlightSummary, read_flight_log
 from trajectories.plan import Plan, load_plan
 
@@ -40,6 +41,68 @@ MAVSDK_SPEED = 2.0  # the MAVSDK backend times its stream on the clock but MAVSD
 # event loop (0.1 s wall = 0.5 s sim) has given RMS 18 mm and max 88 mm; the bounds allow that.
 RMS_BOUND_M = 0.03
 MAX_BOUND_M = 0.12
+
+# The simulated ArduCopter lags a velocity stream as the firmware does (its position controller's
+# acceleration and jerk limits, docs/sim.md). Real ArduCopter 4.7 SITL flying the example plans
+# (issue 19): take-off RMS 60-70 mm / max 109-131 mm, goto 66-69 / 111-125 mm, patterns RMS
+# 13-15 mm, max after the first 2 s 23-46 mm, landing 51-52 mm, lift-off 2.8 s after the take-off
+# command, its 0.3 m lift topping out at 0.41 m. The shortened rectangle and lawnmower fly their
+# sides 2.5x faster than the real run, and lag errors grow with speed: their bounds are the real
+# figures scaled by 2.5 with the same margin.
+ARDUPILOT_RMS_BOUND_M = {"circle": 0.03, "rectangle": 0.05, "lawnmower": 0.05}
+ARDUPILOT_MAX_BOUND_M = {"circle": 0.12, "rectangle": 0.16, "lawnmower": 0.16}
+
+
+def rms_bound(name: str, autopilot: str) -> float:
+    return ARDUPILOT_RMS_BOUND_M[name] if autopilot == "ardupilot" else RMS_BOUND_M
+
+
+def max_bound(name: str, autopilot: str) -> float:
+    return ARDUPILOT_MAX_BOUND_M[name] if autopilot == "ardupilot" else MAX_BOUND_M
+
+
+def liftoff_s_and_top_m(log_path: str) -> tuple[float, float]:
+    """From the flight log: seconds from the take-off phase's start until the vehicle is 2 cm up,
+    and its height where it led the climb reference most (the top of the autopilot's own lift,
+    which the runner's climb then catches up with)."""
+    log = read_flight_log(log_path)
+    sel = log["phase"] == "takeoff"
+    t, z, ref_z = (np.asarray(log[k][sel]) for k in ("t_s", "pos_z_m", "ref_z_m"))
+    up = np.flatnonzero(z > z[0] + 0.02)
+    assert len(up), "the vehicle never left the ground in the take-off phase"
+    return float(t[up[0]] - t[0]), float(z[np.argmax(z - ref_z)] - z[0])
+
+
+def assert_like_arducopter(summary: FlightSummary, with_pattern: bool) -> None:
+    """The flight's figures within bands around the real ArduCopter's (issue 19's table).
+
+    Bands are the real range widened by 30 % (the issue's target) where the simulator meets it
+    (lift-off time and top, take-off and goto max). The circle's RMS and max after 2 s are allowed
+    up to 32 and 60 mm (real 15 and 23 mm; the sim's hand-over from the goto rings longer, see
+    docs/sim.md "Fidelity"). Where it tracks tighter than the
+    firmware (docs/sim.md, "Fidelity"), the band runs from the firmware's figure + 30 % down to a
+    floor the old lag-free simulator stayed below: the take-off RMS (sim 22-65 mm, real 60-70; the
+    firmware's steady 9 cm lead on the climb is not modelled), the goto RMS on a loaded host
+    (sim 37-61 mm, real 66-69) and the landing (sim 15-25 mm, real 51-52).
+    """
+    table = summary.format_table()
+    liftoff_s, top_m = liftoff_s_and_top_m(summary.log_path or "")
+    assert 2.0 <= liftoff_s <= 3.6, (liftoff_s, table)  # real 2.8 s
+    assert 0.29 <= top_m <= 0.53, (top_m, table)  # real 0.41 m
+    takeoff, goto, land = summary.phase("takeoff"), summary.phase("goto"), summary.phase("land")
+    assert 0.018 <= takeoff.rms_error_m <= 0.091, table  # real 60-70 mm; lag-free sim 12-17
+    assert 0.076 <= takeoff.max_error_m <= 0.17, table  # real 109-131 mm; lag-free sim 33-40
+    assert 0.032 <= goto.rms_error_m <= 0.090, table  # real 66-69 mm; lag-free sim 27-28
+    assert 0.078 <= goto.max_error_m <= 0.163, table  # real 111-125 mm; lag-free sim 50-52
+    assert 0.008 <= land.rms_error_m <= 0.068, table  # real 51-52 mm
+    if with_pattern:
+        pat = summary.phase("pattern")
+        # real 15 mm; the sim 18-26 mm: its steady lag is 12 mm, the hand-over from the goto adds the rest
+        assert 0.009 <= pat.rms_error_m <= 0.032, table
+        r = pattern_rows(summary.log_path or "")
+        late = r["err_m"][settled(r["t_s"]) & (r["t_s"] > r["t_s"][0] + 2.0)]
+        # real 23 mm; the sim's hand-over from the goto rings longer (30-36 mm quiet, 45 loaded)
+        assert 0.010 <= float(np.max(late)) <= 0.06, table
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(240)]
 
@@ -108,12 +171,15 @@ def test_circle_tracks_within_bounds_and_looks_inward(autopilot: str, tmp_path: 
     assert 38.0 < pat.duration_s < 45.0  # one 40 s lap (pattern time stands still only while holding)
     assert pat.rms_error_m < RMS_BOUND_M, summary.format_table()
     assert pat.max_error_m < MAX_BOUND_M, summary.format_table()
-    assert summary.phase("takeoff").max_error_m < MAX_BOUND_M
-    # Every phase tracks within the pattern's bounds, the landing included (against the
-    # floor-clamped reference): its descent keeps headroom below the vertical speed limit.
-    for phase in ("takeoff", "goto", "land"):
-        assert summary.phase(phase).rms_error_m < RMS_BOUND_M, summary.format_table()
-        assert summary.phase(phase).max_error_m < MAX_BOUND_M, summary.format_table()
+    if autopilot == "ardupilot":
+        # one lap of the real plan: every phase against the real firmware's figures
+        assert_like_arducopter(summary, with_pattern=True)
+    else:
+        # Every phase tracks within the pattern's bounds, the landing included (against the
+        # floor-clamped reference): its descent keeps headroom below the vertical speed limit.
+        for phase in ("takeoff", "goto", "land"):
+            assert summary.phase(phase).rms_error_m < RMS_BOUND_M, summary.format_table()
+            assert summary.phase(phase).max_error_m < MAX_BOUND_M, summary.format_table()
 
     # the flown path, from the log: a 1 m circle at 1.5 m, all the way round, facing the centre
     r = pattern_rows(summary.log_path or "")
@@ -134,8 +200,10 @@ def test_rectangle_flies_its_corners_with_turns_in_place(autopilot: str, tmp_pat
     summary = asyncio.run(fly("rectangle", autopilot, "pymavlink", SPEED, tmp_path))
     assert_clean(summary)
     pat = summary.phase("pattern")
-    assert pat.rms_error_m < RMS_BOUND_M, summary.format_table()
-    assert pat.max_error_m < MAX_BOUND_M, summary.format_table()
+    assert pat.rms_error_m < rms_bound("rectangle", autopilot), summary.format_table()
+    assert pat.max_error_m < max_bound("rectangle", autopilot), summary.format_table()
+    if autopilot == "ardupilot":
+        assert_like_arducopter(summary, with_pattern=False)
 
     r = pattern_rows(summary.log_path or "")
     x, y = r["pos_x_m"], r["pos_y_m"]
@@ -162,8 +230,10 @@ def test_lawnmower_covers_its_lanes(autopilot: str, tmp_path: Path) -> None:
     summary = asyncio.run(fly("lawnmower", autopilot, "pymavlink", SPEED, tmp_path))
     assert_clean(summary)
     pat = summary.phase("pattern")
-    assert pat.rms_error_m < RMS_BOUND_M, summary.format_table()
-    assert pat.max_error_m < MAX_BOUND_M, summary.format_table()
+    assert pat.rms_error_m < rms_bound("lawnmower", autopilot), summary.format_table()
+    assert pat.max_error_m < max_bound("lawnmower", autopilot), summary.format_table()
+    if autopilot == "ardupilot":
+        assert_like_arducopter(summary, with_pattern=False)
 
     r = pattern_rows(summary.log_path or "")
     x, y = r["pos_x_m"], r["pos_y_m"]
@@ -171,6 +241,36 @@ def test_lawnmower_covers_its_lanes(autopilot: str, tmp_path: Path) -> None:
     for lane_y in (-0.5, 0.0, 0.5):
         on_lane = np.abs(y - lane_y) < 0.03
         assert np.ptp(x[on_lane]) > 1.9, lane_y
+
+
+def with_pva(plan: Plan) -> Plan:
+    """``plan`` flown with position + velocity + acceleration targets (the autopilot's local frame)."""
+    ctl = dataclasses.replace(plan.controller, output_frame=OutputFrame.LOCAL_NED, setpoint=SetpointKind.PVA)
+    return plan.with_changes(controller=ctl)
+
+
+def test_pva_targets_track_tighter_on_the_simulated_ardupilot(tmp_path: Path) -> None:
+    """Issue 19's goal on the faithful simulated ArduCopter, one real circle lap: with position,
+    velocity and acceleration targets the pattern tracks within 8 mm RMS and 30 mm max after its
+    first 2 s, take-off and goto within 30 mm RMS (velocity-only: 18-21 mm, ~36 mm, 22-65 mm,
+    37-61 mm; measured with pva: 3.4 mm, ~11 mm, 15-20 mm, 9-10 mm)."""
+    summary = asyncio.run(fly("circle", "ardupilot", "pymavlink", SPEED, tmp_path, with_pva(shortened("circle"))))
+    assert_clean(summary)
+    table = summary.format_table()
+    # Judged on the cycles the loop ran on time: right after a host stall the pose is up to 0.2 s
+    # old against a moving reference (on the loaded 2-core host one such row alone has read 29 mm
+    # on a circle tracked within ~2 mm), which is no tracking error.
+    log = read_flight_log(summary.log_path or "")
+    for phase, bound_m in (("takeoff", 0.03), ("goto", 0.03), ("pattern", 0.008)):
+        # (err > 0: not the autopilot's own lift, watched against the measured height itself)
+        sel = (log["phase"] == phase) & (log["action"] == "CONTINUE") & (log["err_m"] > 0.0)
+        t, err = np.asarray(log["t_s"][sel]), np.asarray(log["err_m"][sel])
+        ok = settled(t)
+        assert np.count_nonzero(ok) >= 100, (phase, table)  # at least 1 s of cycles to judge
+        assert float(np.sqrt(np.mean(err[ok] ** 2))) < bound_m, (phase, table)
+    r = pattern_rows(summary.log_path or "")
+    late = r["err_m"][settled(r["t_s"]) & (r["t_s"] > r["t_s"][0] + 2.0)]
+    assert float(np.max(late)) < 0.03, table
 
 
 def shortened_for_mavsdk(name: str) -> Plan:
@@ -192,12 +292,16 @@ def shortened_for_mavsdk(name: str) -> Plan:
 # The patterns through the MAVSDK backend, and both personalities (the pymavlink backend flies all
 # six combinations above; test_link_mavsdk.py flies MAVSDK on both personalities too; the circle on
 # MAVSDK and PX4 is flown by the fleet test, tests/integration/test_fleet.py, as one of its vehicles).
+# The PX4 flight sends position + velocity + acceleration targets (MAVSDK's own setter for them).
 @pytest.mark.parametrize(
     ("name", "autopilot"),
     [("rectangle", "ardupilot"), ("lawnmower", "px4")],
 )
 def test_mavsdk_backend_flies_the_patterns(name: str, autopilot: str, tmp_path: Path) -> None:
-    summary = asyncio.run(fly(name, autopilot, "mavsdk", MAVSDK_SPEED, tmp_path, shortened_for_mavsdk(name)))
+    plan = shortened_for_mavsdk(name)
+    if autopilot == "px4":  # PX4 OFFBOARD through MAVSDK's position-velocity-acceleration setter
+        plan = with_pva(plan)
+    summary = asyncio.run(fly(name, autopilot, "mavsdk", MAVSDK_SPEED, tmp_path, plan))
     assert_clean(summary)
     pat = summary.phase("pattern")
     assert pat.rms_error_m < 0.05, summary.format_table()

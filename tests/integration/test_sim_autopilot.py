@@ -494,17 +494,59 @@ def test_ardupilot_guided_needs_position_then_timeout_brake(
     assert c.command(mav.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 2.0) == mav.MAV_RESULT_ACCEPTED
     _wait_local(c, lambda m: m.z < -1.95, timeout_s=10.0)
     lab.wait_until(lambda: abs(lab.truth().vel_enu_m_s[2]) < 0.05, timeout_s=5.0, what="hover")
-    # 1 m/s north, sent for 1 s: it keeps going for GUID_TIMEOUT (3 s) after the last command, then brakes
-    start = _local(c)
-    for _ in range(10):
+    # ArduCopter's measured run (issue 19): 1 m/s north held 3 s moved 2.32 m (its position
+    # controller's acceleration and jerk limits), and the vehicle kept moving 3.6 s after the last
+    # command (GUID_TIMEOUT 3 s, then it braked); bands of about +-15 % around those figures
+    start_n_m = lab.truth().pos_enu_m[1]  # at rest
+    t_first = math.nan
+    for _ in range(30):
         c.send_setpoint(mav.MAV_FRAME_LOCAL_NED, VEL_ONLY, _vel(1.0, 0.0, 0.0))
+        t_first = c.last_sent_s if math.isnan(t_first) else t_first
         lab.clock.sleep_blocking(0.1)
     t_last = c.last_sent_s
+    # distance lost to the acceleration against 1 m/s from the first command (real: 3 - 2.32 m);
+    # the vehicle still flies the last command (GUID_TIMEOUT), so the read may come after it
+    state, t_read = lab.autopilot.truth_stamped()
+    lag_m = (t_read - t_first) * 1.0 - (state.pos_enu_m[1] - start_n_m)
+    assert 0.47 <= lag_m <= 0.89, lag_m  # 0.68 m +-30 %
     c.recv("STATUSTEXT", lambda m: "timeout" in m.text, timeout_s=10.0)
-    assert 2.8 <= _event_s(lab, "failsafe", "command timeout") - t_last <= 3.4
-    stop = _wait_local(c, lambda m: math.hypot(m.vx, m.vy) < 0.05, timeout_s=10.0)
-    moved = stop.x - start.x
-    assert 3.3 <= moved <= 4.6, moved  # ~4 s at 1 m/s, minus the acceleration lag, plus braking
+    t_brake = _event_s(lab, "failsafe", "command timeout")
+    assert 2.8 <= t_brake - t_last <= 3.4
+    lab.wait_until(lambda: math.hypot(*lab.truth().vel_enu_m_s[:2]) < 0.1, timeout_s=10.0, what="stopped")
+    assert 3.1 <= lab.clock.monotonic_s() - t_last <= 4.2
+    assert lab.autopilot.mode.value == "GUIDED"
+
+
+def test_ardupilot_follows_a_position_velocity_acceleration_target(
+    make_lab: Callable[..., SimLab], clients: list[Client]
+) -> None:
+    """A kinematic target (type_mask 1024: position, velocity and acceleration) is flown without
+    the velocity shaping's lag, advances with its velocity between messages and, after
+    GUID_TIMEOUT without a new one, stops where it had got to (ArduCopter's guided mode)."""
+    lab = make_lab("ardupilot")
+    c = _client(clients, lab)
+    assert c.set_mode(4) == mav.MAV_RESULT_ACCEPTED
+    assert c.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mav.MAV_RESULT_ACCEPTED
+    assert c.command(mav.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 1.0) == mav.MAV_RESULT_ACCEPTED
+    _wait_local(c, lambda m: m.z < -0.95, timeout_s=10.0)
+    lab.wait_until(lambda: math.hypot(*lab.truth().vel_enu_m_s) < 0.05, timeout_s=10.0, what="hover")
+    here = lab.autopilot.estimate_local_enu_m()
+    # one message: from here (north, east, down), moving north at 0.3 m/s, no acceleration
+    c.conn.mav.set_position_target_local_ned_send(
+        0, 1, 1, mav.MAV_FRAME_LOCAL_NED, 1024, here[1], here[0], -here[2], 0.3, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    )
+    t_sent = lab.clock.monotonic_s()
+    lab.wait_until(lambda: lab.clock.monotonic_s() > t_sent + 1.5, timeout_s=10.0, what="1.5 s")
+    state, t_now = lab.autopilot.truth_stamped()
+    # on the target's track within centimetres (velocity-only would trail by ~0.15 m here)
+    assert state.pos_enu_m[1] - here[1] == pytest.approx(0.3 * (t_now - t_sent), abs=0.05)
+    lab.wait_until(
+        lambda: lab.clock.monotonic_s() > t_sent + 6.0 and math.hypot(*lab.truth().vel_enu_m_s) < 0.02,
+        timeout_s=20.0,
+        what="stopped",
+    )
+    # GUID_TIMEOUT 3 s at 0.3 m/s: the target stopped 0.9 m north
+    assert lab.truth().pos_enu_m[1] - here[1] == pytest.approx(0.9, abs=0.05)
     assert lab.autopilot.mode.value == "GUIDED"
 
 

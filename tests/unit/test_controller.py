@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -9,8 +10,14 @@ import pytest
 from flightkit.config import load_section
 from flightkit.errors import ConfigError
 from flightkit.link.base import SetpointFrame
-from trajectories.base import Reference
-from trajectories.controller import ControllerConfig, OutputFrame, VelocityController, YawControl
+from trajectories.base import Reference, with_acceleration
+from trajectories.controller import (
+    ControllerConfig,
+    OutputFrame,
+    SetpointKind,
+    VelocityController,
+    YawControl,
+)
 from trajectories.patterns import Circle
 
 
@@ -143,3 +150,28 @@ def test_feedforward_beats_p_only_on_the_circle() -> None:
 def test_hold_is_zero_velocity_keep_yaw() -> None:
     sp = VelocityController().hold()
     assert sp.vel_m_s == (0.0, 0.0, 0.0) and sp.yaw_rate_rad_s == 0.0 and sp.frame is SetpointFrame.BODY
+
+
+def test_pva_sends_the_reference_position_and_a_limited_acceleration() -> None:
+    c = world(setpoint=SetpointKind.PVA, max_accel_m_s2=1.0)
+    r = dataclasses.replace(ref(pos=(1.0, 0.0, 1.5), vel=(0.1, 0.0, 0.0)), accel_m_s2=(3.0, 4.0, 0.0))
+    out = c.step(r, (0.9, 0.0, 1.5), 0.0, 0.01)
+    assert out.setpoint.pos_m == (1.0, 0.0, 1.5)
+    assert out.setpoint.accel_m_s2 == pytest.approx((0.6, 0.8, 0.0))  # 5 m/s^2 cut to 1, direction kept
+    assert out.setpoint.vel_m_s == pytest.approx((0.2, 0.0, 0.0))  # feed-forward + the mocap error term
+    # the baseline sends a velocity only
+    assert world().step(r, (0.9, 0.0, 1.5), 0.0, 0.01).setpoint.pos_m is None
+
+
+def test_pva_needs_the_local_frame() -> None:
+    with pytest.raises(ConfigError, match="position targets are in the autopilot's local frame"):
+        load_section(ControllerConfig, {"setpoint": "pva", "output_frame": "body"}, path="plan.toml")
+
+
+def test_reference_acceleration_is_the_velocity_derivative() -> None:
+    circle = Circle(radius_m=1.0, period_s=40.0, laps=1, height_m=1.5)
+    r = with_acceleration(circle, circle.reference(10.0))
+    omega = 2 * math.pi / 40.0
+    assert math.hypot(*r.accel_m_s2[:2]) == pytest.approx(omega**2 * 1.0, rel=1e-3)  # centripetal
+    # pointing at the centre
+    assert r.accel_m_s2[0] * r.pos_m[0] + r.accel_m_s2[1] * r.pos_m[1] < 0.0

@@ -15,6 +15,8 @@ from flightkit.frames import Transform
 from flightkit.link.base import ExternalPose, SetpointFrame, VelocitySetpoint
 from flightkit.link.mavlink import (
     HARD_MAX_HORIZONTAL_M_S,
+    TYPE_MASK_PVA_YAW,
+    TYPE_MASK_PVA_YAW_RATE,
     TYPE_MASK_VELOCITY_YAW,
     TYPE_MASK_VELOCITY_YAW_RATE,
     check_hard_limits,
@@ -23,6 +25,7 @@ from flightkit.link.mavlink import (
     encode_vision_position_estimate,
     heartbeat_type_for_component,
 )
+from flightkit.link.mavlink.encoding import encode_setpoint_message
 
 
 def _roundtrip(msg: object) -> object:
@@ -161,3 +164,32 @@ def test_heartbeat_type_follows_component_id() -> None:
     assert heartbeat_type_for_component(194) == mavlink2.MAV_TYPE_ONBOARD_CONTROLLER
     assert heartbeat_type_for_component(190) == mavlink2.MAV_TYPE_GCS
     assert heartbeat_type_for_component(0) == mavlink2.MAV_TYPE_GCS
+
+
+def test_position_velocity_acceleration_target_uses_all_three() -> None:
+    """pva: the MAVLink spec's bits (0-2 position, 3-5 velocity, 6-8 acceleration, 10 yaw,
+    11 yaw rate; set = ignore) with everything in local NED, on the wire."""
+    assert TYPE_MASK_PVA_YAW == 2048 and TYPE_MASK_PVA_YAW_RATE == 1024
+    sp = VelocitySetpoint(
+        (0.1, 0.2, 0.3), SetpointFrame.WORLD, yaw_rate_rad_s=0.5, pos_m=(1.0, 2.0, 1.5), accel_m_s2=(0.4, -0.2, 0.1)
+    )
+    f = encode_velocity_setpoint(sp)
+    assert f.coordinate_frame == 1 and f.type_mask == 1024
+    assert f.pos_ned_m == (2.0, 1.0, -1.5) and (f.vx, f.vy, f.vz) == (0.2, 0.1, -0.3)
+    assert f.accel_ned_m_s2 == (-0.2, 0.4, -0.1) and f.yaw_rate == -0.5
+    msg = encode_setpoint_message(f, (1, 1), 0)
+    back = _roundtrip(msg)
+    assert (back.x, back.y, back.z) == pytest.approx((2.0, 1.0, -1.5))  # type: ignore[attr-defined]
+    assert (back.afx, back.afy, back.afz) == pytest.approx((-0.2, 0.4, -0.1))  # type: ignore[attr-defined]
+    assert encode_velocity_setpoint(VelocitySetpoint((0, 0, 0), yaw_rad=0.0, pos_m=(0, 0, 1))).type_mask == 2048
+
+
+def test_position_targets_need_the_world_frame_and_bounded_acceleration() -> None:
+    with pytest.raises(SetpointError, match="WORLD frame"):
+        VelocitySetpoint((0, 0, 0), SetpointFrame.BODY, pos_m=(0.0, 0.0, 1.0))
+    with pytest.raises(SetpointError, match="needs a position target"):
+        VelocitySetpoint((0, 0, 0), accel_m_s2=(0.0, 0.0, 1.0))
+    with pytest.raises(SetpointError, match="pos_m must be 3 finite"):
+        VelocitySetpoint((0, 0, 0), pos_m=(0.0, math.nan, 1.0))
+    with pytest.raises(SetpointError, match="acceleration 9.000 m/s\\^2 exceeds the limit 8.000"):
+        check_hard_limits(VelocitySetpoint((0, 0, 0), pos_m=(0.0, 0.0, 1.0), accel_m_s2=(9.0, 0.0, 0.0)))

@@ -19,6 +19,7 @@ from flightkit.link.mavsdk import (
     pose_covariance_upper,
     setpoint_to_mavsdk,
 )
+from flightkit.link.mavsdk.encoding import PVA_YAW_RATE_LEAD_S
 
 
 @pytest.mark.parametrize(
@@ -171,3 +172,18 @@ def test_external_pose_attitude_round_trips_through_ned() -> None:
     # Velocity in the body frame maps back to the world velocity.
     v_world = ned_to_enu(R_ned_frd.apply(ned.vel_frd_m_s))
     np.testing.assert_allclose(v_world, [0.5, -0.2, 0.1], atol=1e-9)
+
+
+def test_position_target_becomes_position_velocity_acceleration_ned() -> None:
+    sp = VelocitySetpoint((0.1, 0.2, 0.3), yaw_rad=0.0, pos_m=(1.0, 2.0, 1.5), accel_m_s2=(0.4, -0.2, 0.1))
+    cmd = setpoint_to_mavsdk(sp, yaw_local_rad=math.nan)
+    assert cmd.kind == "pva"
+    assert cmd.pos_ned_m == pytest.approx((2.0, 1.0, -1.5))
+    assert (cmd.a, cmd.b, cmd.c) == pytest.approx((0.2, 0.1, -0.3))
+    assert cmd.accel_ned_m_s2 == pytest.approx((-0.2, 0.4, -0.1))
+    assert cmd.yaw_deg == pytest.approx(90.0)
+    # MAVSDK's setter takes an absolute yaw: a rate leads the current heading by one stream period
+    rate = VelocitySetpoint((0.0, 0.0, 0.0), yaw_rate_rad_s=1.0, pos_m=(0.0, 0.0, 1.0))
+    assert setpoint_to_mavsdk(rate, math.pi / 2).yaw_deg == pytest.approx(-math.degrees(PVA_YAW_RATE_LEAD_S))
+    with pytest.raises(LinkError, match="attitude is known"):
+        setpoint_to_mavsdk(rate, math.nan)

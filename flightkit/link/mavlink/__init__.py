@@ -18,9 +18,12 @@ Import the public names from here: ``from flightkit.link.mavlink import MavlinkL
 from __future__ import annotations
 
 from flightkit.link.mavlink.encoding import (
+    HARD_MAX_ACCEL_M_S2,
     HARD_MAX_HORIZONTAL_M_S,
     HARD_MAX_VERTICAL_M_S,
     HARD_MAX_YAW_RATE_RAD_S,
+    TYPE_MASK_PVA_YAW,
+    TYPE_MASK_PVA_YAW_RATE,
     TYPE_MASK_VELOCITY_ONLY,
     TYPE_MASK_VELOCITY_YAW,
     TYPE_MASK_VELOCITY_YAW_RATE,
@@ -34,9 +37,12 @@ from flightkit.link.mavlink.encoding import (
 from flightkit.link.mavlink.link import LinkStats, MavlinkLink
 
 __all__ = [
+    "HARD_MAX_ACCEL_M_S2",
     "HARD_MAX_HORIZONTAL_M_S",
     "HARD_MAX_VERTICAL_M_S",
     "HARD_MAX_YAW_RATE_RAD_S",
+    "TYPE_MASK_PVA_YAW",
+    "TYPE_MASK_PVA_YAW_RATE",
     "TYPE_MASK_VELOCITY_ONLY",
     "TYPE_MASK_VELOCITY_YAW",
     "TYPE_MASK_VELOCITY_YAW_RATE",

@@ -32,9 +32,12 @@ from flightkit.frames import (
 from flightkit.link.base import ExternalPose, SetpointFrame, VelocitySetpoint
 
 __all__ = [
+    "HARD_MAX_ACCEL_M_S2",
     "HARD_MAX_HORIZONTAL_M_S",
     "HARD_MAX_VERTICAL_M_S",
     "HARD_MAX_YAW_RATE_RAD_S",
+    "TYPE_MASK_PVA_YAW",
+    "TYPE_MASK_PVA_YAW_RATE",
     "TYPE_MASK_VELOCITY_ONLY",
     "TYPE_MASK_VELOCITY_YAW",
     "TYPE_MASK_VELOCITY_YAW_RATE",
@@ -64,11 +67,15 @@ class MavlinkMessage(Protocol):
 HARD_MAX_HORIZONTAL_M_S = 15.0
 HARD_MAX_VERTICAL_M_S = 5.0
 HARD_MAX_YAW_RATE_RAD_S = 6.0
+HARD_MAX_ACCEL_M_S2 = 8.0
 
 # SET_POSITION_TARGET_LOCAL_NED type_mask (bit set = ignore the field).
 TYPE_MASK_VELOCITY_YAW = 2503  # position, acceleration and yaw rate ignored
 TYPE_MASK_VELOCITY_YAW_RATE = 1479  # position, acceleration and yaw ignored
 TYPE_MASK_VELOCITY_ONLY = 3527  # yaw and yaw rate ignored too
+_MASK_POSITION_AND_ACCEL = 0b111000111  # the ignore bits of x/y/z and afx/afy/afz
+TYPE_MASK_PVA_YAW = TYPE_MASK_VELOCITY_YAW & ~_MASK_POSITION_AND_ACCEL  # 2048: yaw rate ignored
+TYPE_MASK_PVA_YAW_RATE = TYPE_MASK_VELOCITY_YAW_RATE & ~_MASK_POSITION_AND_ACCEL  # 1024: yaw ignored
 
 MAV_FRAME_LOCAL_NED = 1
 MAV_FRAME_BODY_NED = 8
@@ -133,7 +140,7 @@ def result_name(result: int) -> str:
 
 @dataclass(frozen=True, slots=True)
 class SetpointFields:
-    """SET_POSITION_TARGET_LOCAL_NED fields for a velocity setpoint (NED/FRD, MAVLink units)."""
+    """SET_POSITION_TARGET_LOCAL_NED fields for a setpoint (NED/FRD, MAVLink units)."""
 
     coordinate_frame: int
     type_mask: int
@@ -142,12 +149,16 @@ class SetpointFields:
     vz: float
     yaw: float
     yaw_rate: float
+    pos_ned_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    accel_ned_m_s2: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 def check_hard_limits(setpoint: VelocitySetpoint) -> None:
     """Raise SetpointError when a setpoint exceeds the backend's safety net."""
     try:
-        setpoint.check_limits(HARD_MAX_HORIZONTAL_M_S, HARD_MAX_VERTICAL_M_S, HARD_MAX_YAW_RATE_RAD_S)
+        setpoint.check_limits(
+            HARD_MAX_HORIZONTAL_M_S, HARD_MAX_VERTICAL_M_S, HARD_MAX_YAW_RATE_RAD_S, HARD_MAX_ACCEL_M_S2
+        )
     except SetpointError as exc:
         raise SetpointError(
             f"{exc} (hard safety limit of the MAVLink link; this is almost surely a bug)"
@@ -160,7 +171,9 @@ def encode_velocity_setpoint(setpoint: VelocitySetpoint) -> SetpointFields:
     WORLD (ENU) -> MAV_FRAME_LOCAL_NED with the velocity in NED; BODY (FLU) ->
     MAV_FRAME_BODY_NED with the velocity in FRD. A yaw is an ENU heading (counter-clockwise
     from x) and becomes a NED yaw (clockwise from north); a yaw rate changes sign (ENU
-    counter-clockwise positive -> NED clockwise positive). Neither given: yaw rate 0.
+    counter-clockwise positive -> NED clockwise positive). Neither given: yaw rate 0. With a
+    position target, the position and acceleration go in too (type_mask 2048 with a yaw, 1024
+    with a yaw rate: position, velocity and acceleration all used, per the MAVLink spec).
     """
     if setpoint.frame is SetpointFrame.WORLD:
         frame = MAV_FRAME_LOCAL_NED
@@ -168,20 +181,21 @@ def encode_velocity_setpoint(setpoint: VelocitySetpoint) -> SetpointFields:
     else:
         frame = MAV_FRAME_BODY_NED
         v = flu_to_frd(setpoint.vel_m_s)
+    vel = (float(v[0]), float(v[1]), float(v[2]))
+    pva = setpoint.pos_m is not None
+    pos = _ned_tuple(setpoint.pos_m or (0.0, 0.0, 0.0))
+    acc = _ned_tuple(setpoint.accel_m_s2 or (0.0, 0.0, 0.0))
     if setpoint.yaw_rad is not None:
-        return SetpointFields(
-            frame,
-            TYPE_MASK_VELOCITY_YAW,
-            float(v[0]),
-            float(v[1]),
-            float(v[2]),
-            yaw_enu_to_ned(setpoint.yaw_rad),
-            0.0,
-        )
+        mask = TYPE_MASK_PVA_YAW if pva else TYPE_MASK_VELOCITY_YAW
+        return SetpointFields(frame, mask, *vel, yaw_enu_to_ned(setpoint.yaw_rad), 0.0, pos, acc)
     rate = 0.0 if setpoint.yaw_rate_rad_s is None else -float(setpoint.yaw_rate_rad_s)
-    return SetpointFields(
-        frame, TYPE_MASK_VELOCITY_YAW_RATE, float(v[0]), float(v[1]), float(v[2]), 0.0, rate + 0.0
-    )
+    mask = TYPE_MASK_PVA_YAW_RATE if pva else TYPE_MASK_VELOCITY_YAW_RATE
+    return SetpointFields(frame, mask, *vel, 0.0, rate + 0.0, pos, acc)
+
+
+def _ned_tuple(v_enu: tuple[float, float, float]) -> tuple[float, float, float]:
+    n = enu_to_ned(v_enu)
+    return (float(n[0]), float(n[1]), float(n[2]))
 
 
 def encode_setpoint_message(f: SetpointFields, target: tuple[int, int], time_boot_ms: int) -> MavlinkMessage:
@@ -192,15 +206,11 @@ def encode_setpoint_message(f: SetpointFields, target: tuple[int, int], time_boo
         target[1],
         f.coordinate_frame,
         f.type_mask,
-        0.0,
-        0.0,
-        0.0,
+        *f.pos_ned_m,
         f.vx,
         f.vy,
         f.vz,
-        0.0,
-        0.0,
-        0.0,
+        *f.accel_ned_m_s2,
         f.yaw,
         f.yaw_rate,
     )

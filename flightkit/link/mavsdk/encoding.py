@@ -124,14 +124,27 @@ def external_pose_to_ned(pose: ExternalPose) -> NedPose:
 
 @dataclasses.dataclass(frozen=True, slots=True)
 class _NedCommand:
-    """A setpoint as MAVSDK takes it: VelocityNedYaw (``yaw_deg`` set) or VelocityBodyYawspeed."""
+    """A setpoint as MAVSDK takes it: VelocityNedYaw (``yaw_deg`` set), VelocityBodyYawspeed, or
+    PositionNedYaw + VelocityNedYaw + AccelerationNed ("pva")."""
 
-    kind: str  # "ned" or "body"
+    kind: str  # "ned", "body" or "pva"
     a: float  # north / forward, m/s
     b: float  # east / right, m/s
     c: float  # down, m/s
-    yaw_deg: float = 0.0  # "ned": absolute NED yaw, degrees clockwise from north
+    yaw_deg: float = 0.0  # "ned", "pva": absolute NED yaw, degrees clockwise from north
     yawspeed_deg_s: float = 0.0  # "body": yaw rate, degrees/s clockwise seen from above
+    pos_ned_m: tuple[float, float, float] = (0.0, 0.0, 0.0)  # "pva"
+    accel_ned_m_s2: tuple[float, float, float] = (0.0, 0.0, 0.0)  # "pva"
+
+
+# MAVSDK's position-velocity-acceleration setter takes an absolute yaw only: a yaw rate becomes
+# the current heading advanced by the rate over this lead (one 10 Hz stream period).
+PVA_YAW_RATE_LEAD_S = 0.1
+
+
+def _ned3(v_enu: tuple[float, float, float]) -> tuple[float, float, float]:
+    n = enu_to_ned(v_enu)
+    return (float(n[0]), float(n[1]), float(n[2]))
 
 
 def setpoint_to_mavsdk(sp: VelocitySetpoint, yaw_local_rad: float) -> _NedCommand:
@@ -146,6 +159,23 @@ def setpoint_to_mavsdk(sp: VelocitySetpoint, yaw_local_rad: float) -> _NedComman
         LinkError: the frame has to change and the heading is not known yet.
     """
     vx, vy, vz = sp.vel_m_s
+    if sp.pos_m is not None:
+        if sp.yaw_rad is not None:
+            yaw_enu = sp.yaw_rad
+        elif math.isfinite(yaw_local_rad):
+            yaw_enu = yaw_local_rad + (sp.yaw_rate_rad_s or 0.0) * PVA_YAW_RATE_LEAD_S
+        else:
+            raise LinkError("cannot send a position target with a yaw rate before the attitude is known")
+        n, e, d = _ned3(sp.vel_m_s)
+        return _NedCommand(
+            "pva",
+            n,
+            e,
+            d,
+            yaw_deg=math.degrees(yaw_enu_to_ned(yaw_enu)),
+            pos_ned_m=_ned3(sp.pos_m),
+            accel_ned_m_s2=_ned3(sp.accel_m_s2 or (0.0, 0.0, 0.0)),
+        )
     if sp.frame is SetpointFrame.WORLD:
         if sp.yaw_rad is not None:
             n, e, d = enu_to_ned([vx, vy, vz])

@@ -45,11 +45,23 @@ async def send_offboard_setpoint(offboard: Any, sp: VelocitySetpoint, yaw_local_
     Raises:
         LinkError: MAVSDK refused it, or the frame has to change and the heading is unknown.
     """
-    from mavsdk.asyncio.plugins.offboard import OffboardError, VelocityBodyYawspeed, VelocityNedYaw
+    from mavsdk.asyncio.plugins.offboard import (
+        AccelerationNed,
+        OffboardError,
+        PositionNedYaw,
+        VelocityBodyYawspeed,
+        VelocityNedYaw,
+    )
 
     cmd = setpoint_to_mavsdk(sp, yaw_local_rad)
     try:
-        if cmd.kind == "ned":
+        if cmd.kind == "pva":
+            await offboard.set_position_velocity_acceleration_ned(
+                PositionNedYaw(*cmd.pos_ned_m, cmd.yaw_deg),
+                VelocityNedYaw(cmd.a, cmd.b, cmd.c, cmd.yaw_deg),
+                AccelerationNed(*cmd.accel_ned_m_s2),
+            )
+        elif cmd.kind == "ned":
             await offboard.set_velocity_ned(VelocityNedYaw(cmd.a, cmd.b, cmd.c, cmd.yaw_deg))
         else:
             await offboard.set_velocity_body(VelocityBodyYawspeed(cmd.a, cmd.b, cmd.c, cmd.yawspeed_deg_s))

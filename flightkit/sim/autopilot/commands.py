@@ -333,6 +333,7 @@ class _AutopilotInbound(_AutopilotTelemetry):
         mask = int(msg.type_mask)
         use_pos = mask & _IGNORE_POS != _IGNORE_POS
         use_vel = mask & _IGNORE_VEL != _IGNORE_VEL
+        use_acc = mask & _IGNORE_ACC != _IGNORE_ACC
         if not use_pos and not use_vel:
             return  # acceleration / force setpoints are not simulated
         yaw_est = self._est_yaw_local()
@@ -346,7 +347,9 @@ class _AutopilotInbound(_AutopilotTelemetry):
                 return np.array([c * x + s * y, s * x - c * y, -z])
             return ned_to_enu((x, y, z))
 
-        pos = vel = None
+        pos = vel = acc = None
+        if use_acc:
+            acc = to_local_enu(msg.afx, msg.afy, msg.afz)
         if use_pos:
             pos = to_local_enu(msg.x, msg.y, msg.z)
             if body or offset:
@@ -361,11 +364,9 @@ class _AutopilotInbound(_AutopilotTelemetry):
                 yaw = yaw_ned_to_enu(msg.yaw)
         elif not mask & _IGNORE_YAW_RATE and math.isfinite(msg.yaw_rate):
             yaw_rate = -float(msg.yaw_rate)
-        if (pos is not None and not np.all(np.isfinite(pos))) or (
-            vel is not None and not np.all(np.isfinite(vel))
-        ):
+        if any(v is not None and not np.all(np.isfinite(v)) for v in (pos, vel, acc)):
             return
-        sp = _Setpoint(now, pos, vel, yaw, yaw_rate)
+        sp = _Setpoint(now, pos, vel, yaw, yaw_rate, acc)
         if p.loss_action is LossAction.FAILSAFE_MODE:
             prev = self._setpoint
             if prev is None or self._stream_start_s is None or now - prev.received_s > p.stream_max_gap_s:

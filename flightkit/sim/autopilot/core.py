@@ -33,6 +33,7 @@ from flightkit.sim.dynamics import DynamicsState, QuadDynamics
 from flightkit.sim.personality import (
     Personality,
 )
+from flightkit.sim.posctl import VelocityShaper
 
 logger = logging.getLogger(__name__)
 
@@ -63,6 +64,7 @@ class _Setpoint:
     vel_local_enu_m_s: npt.NDArray[np.float64] | None
     yaw_local_enu_rad: float | None
     yaw_rate_enu_rad_s: float | None
+    accel_local_enu_m_s2: npt.NDArray[np.float64] | None = None
 
 
 class _SendFile:
@@ -169,6 +171,9 @@ class _AutopilotCore:
         self._link_dead_until = -math.inf
         self._battery_used_s = 0.0
         self._battery_override: float | None = None
+        self._takeoff_cmd_s = -math.inf
+        self._shaper = VelocityShaper()
+        self._shaper_last_s: float | None = None
 
         # estimator
         self._est_bias = np.zeros(3)  # local ENU, estimate - truth
@@ -252,6 +257,10 @@ class _AutopilotCore:
         """Override the battery charge (0-1); None returns to the simulated discharge."""
         with self._lock:
             self._battery_override = None if fraction is None else min(1.0, max(0.0, fraction))
+
+    def _battery_endurance_s(self) -> float:
+        endurance = self.options.battery_endurance_s
+        return self.personality.battery_endurance_s if endurance is None else endurance
 
     def _world_to_local_vec(self, v_world: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
         return self._R_world_local.T @ v_world

@@ -17,7 +17,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from flightkit.frames import ned_to_enu, wrap_angle_rad, yaw_ned_to_enu
 from flightkit.link.base import FlightMode, LandedState
-from flightkit.sim.autopilot.core import _NEEDS_POSITION_ARDUPILOT, _AutopilotCore, _rot_z
+from flightkit.sim.autopilot.core import _NEEDS_POSITION_ARDUPILOT, _AutopilotCore, _rot_z, _Setpoint
 from flightkit.sim.dynamics import MotorState
 from flightkit.sim.personality import (
     LossAction,
@@ -140,8 +140,10 @@ class _AutopilotFlight(_AutopilotCore):
     def _command_dynamics(self, now: float) -> None:
         p = self.personality
         if not self._armed:
+            self._shaper_last_s = None
             return
         vel_local = np.zeros(3)
+        accel_local: npt.NDArray[np.float64] | None = None  # set: a kinematic target, not shaped
         yaw_local: float | None = None
         yaw_rate: float | None = 0.0
         mode = self._mode
@@ -152,15 +154,17 @@ class _AutopilotFlight(_AutopilotCore):
             if self._hold_target is None:
                 self._hold_target = est.copy()
                 self._hold_yaw = self._est_yaw_local()
-            if (
+            spooling = self.dynamics.on_ground and now - self._takeoff_cmd_s < p.takeoff_spool_s
+            if spooling:
+                yaw_local, yaw_rate = self._hold_yaw, None
+            elif (
                 self.dynamics.motor_state()[0] is MotorState.SPINUP
                 or est[2] < self._takeoff_alt_local_m - 0.05
             ):
                 vel_local = self._goto(
                     np.array([self._hold_target[0], self._hold_target[1], est[2]]), 1.0, 0.0
                 )
-                remaining = self._takeoff_alt_local_m - est[2]
-                vel_local[2] = max(0.3, min(climb, 1.5 * remaining))
+                vel_local[2] = self._climb_speed(self._takeoff_alt_local_m - est[2], climb)
                 yaw_local, yaw_rate = self._hold_yaw, None
             else:
                 self._hold_target = np.array(
@@ -182,17 +186,54 @@ class _AutopilotFlight(_AutopilotCore):
         elif mode is p.rtl_mode:
             vel_local, yaw_local, yaw_rate = self._rtl_command()
         elif mode is p.setpoint_mode:
-            vel_local, yaw_local, yaw_rate = self._setpoint_command(now)
+            vel_local, yaw_local, yaw_rate, accel_local = self._setpoint_command(now)
         elif mode in _HOLD_LIKE:
             vel_local, yaw_local, yaw_rate = self._hold_command(now)
 
+        vel_local, accel_local = self._position_controller(now, vel_local, accel_local)
         vel_world = self._est_to_world_vec(vel_local)
+        accel_world = None if accel_local is None else self._est_to_world_vec(accel_local)
         yaw_world = None
         if yaw_local is not None:
             yaw_world = wrap_angle_rad(yaw_local - self._yaw_bias + self.options.heading_offset_rad)
         self.dynamics.command(
-            vel_world, yaw_rad=yaw_world, yaw_rate_rad_s=None if yaw_world is not None else yaw_rate
+            vel_world,
+            yaw_rad=yaw_world,
+            yaw_rate_rad_s=None if yaw_world is not None else yaw_rate,
+            accel_enu_m_s2=accel_world,
         )
+
+    def _climb_speed(self, remaining_m: float, climb_m_s: float) -> float:
+        """Take-off climb speed with ``remaining_m`` to go: the firmware's position controller
+        (ArduCopter: square-root profile within WPNAV_ACCEL_Z), else a proportional slow-down."""
+        limits = self.personality.posctl_limits
+        if limits is None:
+            return max(0.3, min(climb_m_s, 1.5 * remaining_m))
+        accel_z = limits(self._params).accel_z_m_s2
+        cap = min(climb_m_s, self.personality.takeoff_climb_max_m_s)
+        return min(cap, math.sqrt(2.0 * accel_z * max(remaining_m, 0.0)))
+
+    def _position_controller(
+        self,
+        now: float,
+        vel_local: npt.NDArray[np.float64],
+        accel_local: npt.NDArray[np.float64] | None,
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64] | None]:
+        """The firmware's kinematic shaping of the velocity command (ArduCopter's AC_PosControl:
+        acceleration and jerk limits), unless the command is already a kinematic target."""
+        make_limits = self.personality.posctl_limits
+        last, self._shaper_last_s = self._shaper_last_s, now
+        if make_limits is None:
+            return vel_local, accel_local
+        if accel_local is not None:  # a position/velocity/acceleration target: followed as it is
+            self._shaper.reset(vel_local)
+            self._shaper.accel_m_s2 = accel_local.copy()
+            return vel_local, accel_local
+        if self.dynamics.on_ground and vel_local[2] <= 0.0:
+            self._shaper.reset()
+            return vel_local, None
+        dt = 0.0 if last is None else max(0.0, now - last)
+        return self._shaper.step(vel_local, make_limits(self._params), dt)
 
     def _land_speed(self) -> float:
         if "MPC_LAND_SPEED" in self._params:
@@ -221,25 +262,34 @@ class _AutopilotFlight(_AutopilotCore):
             return self._goto(target, 3.0, 1.0), self._hold_yaw, None
         return np.zeros(3), self._hold_yaw, None
 
-    def _setpoint_command(self, now: float) -> tuple[npt.NDArray[np.float64], float | None, float | None]:
+    def _setpoint_command(
+        self, now: float
+    ) -> tuple[npt.NDArray[np.float64], float | None, float | None, npt.NDArray[np.float64] | None]:
+        """(velocity, yaw, yaw rate, acceleration) from the current setpoint; the acceleration is
+        not None when the setpoint is a kinematic target (position with velocity or acceleration)."""
         p = self.personality
         if p.loss_action is LossAction.FAILSAFE_MODE:
             sp = self._setpoint
             if sp is None:
-                return self._hold_command(now)
+                return (*self._hold_command(now), None)
         else:
             sp = self._guided_target
             if sp is None:
-                return self._hold_command(now)
+                return (*self._hold_command(now), None)
             if sp.pos_local_enu_m is None and now - sp.received_s > self._loss_timeout_s():
                 # GUID_TIMEOUT: stop, brake, hover in GUIDED
                 self._guided_target = None
                 self._hold_target = None
                 self._statustext(p.text("offboard_lost"), mav.MAV_SEVERITY_WARNING)
                 self._event("failsafe", "velocity command timeout, braking")
-                return self._hold_command(now)
+                return (*self._hold_command(now), None)
         self._hold_target = None
-        if sp.pos_local_enu_m is not None:
+        accel: npt.NDArray[np.float64] | None = None
+        if sp.pos_local_enu_m is not None and (
+            sp.accel_local_enu_m_s2 is not None or (sp.vel_local_enu_m_s is not None and p.posctl_limits)
+        ):
+            vel, accel = self._kinematic_target(now, sp)
+        elif sp.pos_local_enu_m is not None:
             vel = self._goto(sp.pos_local_enu_m, 3.0, 1.5)
             if sp.vel_local_enu_m_s is not None:
                 vel = vel + sp.vel_local_enu_m_s
@@ -247,13 +297,40 @@ class _AutopilotFlight(_AutopilotCore):
             assert sp.vel_local_enu_m_s is not None
             vel = sp.vel_local_enu_m_s.copy()
         if sp.yaw_local_enu_rad is not None:
-            return vel, sp.yaw_local_enu_rad, None
+            return vel, sp.yaw_local_enu_rad, None, accel
         if sp.yaw_rate_enu_rad_s is not None:
-            return vel, None, sp.yaw_rate_enu_rad_s
+            return vel, None, sp.yaw_rate_enu_rad_s, accel
         # yaw not commanded: hold the current heading
         if self._hold_yaw is None:
             self._hold_yaw = self._est_yaw_local()
-        return vel, self._hold_yaw, None
+        return vel, self._hold_yaw, None, accel
+
+    def _kinematic_target(
+        self, now: float, sp: _Setpoint
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """Velocity command and acceleration feed-forward for a position + velocity (+ acceleration)
+        target: the target advances with its velocity and acceleration between messages (as
+        ArduCopter's guided mode does; for GUID_TIMEOUT, then it stops there), and the position
+        error feeds back with the position gain."""
+        assert sp.pos_local_enu_m is not None
+        vel = np.zeros(3) if sp.vel_local_enu_m_s is None else sp.vel_local_enu_m_s
+        acc = np.zeros(3) if sp.accel_local_enu_m_s2 is None else sp.accel_local_enu_m_s2
+        age = max(0.0, now - sp.received_s)
+        timeout = self._loss_timeout_s()
+        if age > timeout:
+            pos_t = sp.pos_local_enu_m + vel * timeout + 0.5 * acc * timeout**2
+            vel_t, acc_t = np.zeros(3), np.zeros(3)
+        else:
+            pos_t = sp.pos_local_enu_m + vel * age + 0.5 * acc * age**2
+            vel_t, acc_t = vel + acc * age, acc.copy()
+        make_limits = self.personality.posctl_limits
+        if make_limits is None:
+            kp_xy = kp_z = 1.2
+        else:
+            limits = make_limits(self._params)
+            kp_xy, kp_z = limits.pos_xy_p_1_s, limits.pos_z_p_1_s
+        err = pos_t - self._est_pos_local()
+        return vel_t + np.array([kp_xy * err[0], kp_xy * err[1], kp_z * err[2]]), acc_t
 
     def _update_ground_state(self, now: float) -> None:
         on_ground = self.dynamics.on_ground
@@ -356,4 +433,5 @@ class _AutopilotFlight(_AutopilotCore):
 
     def _start_takeoff(self, alt_local_m: float) -> None:
         self._takeoff_alt_local_m = alt_local_m
+        self._takeoff_cmd_s = self.clock.monotonic_s()
         self._hold_target = None

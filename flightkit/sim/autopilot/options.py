@@ -77,7 +77,8 @@ class AutopilotOptions:
         params: parameter overrides, e.g. ``{"COM_OF_LOSS_T": 0.5}``.
         stream_rates_hz: stream-rate overrides by MAVLink message id (0 = off).
         tick_wall_s: wall-clock period of the control loop.
-        battery_endurance_s: flight time on a full battery (armed time).
+        battery_endurance_s: armed time from a full to an empty battery; None = the
+            personality's (ArduPilot 450 s: ``battery_low`` at 20 % after 6 min, as SITL).
         client_timeout_s: a udpin client silent this long (sim time) is forgotten.
     """
 
@@ -94,5 +95,5 @@ class AutopilotOptions:
     params: Mapping[str, float] = field(default_factory=dict)
     stream_rates_hz: Mapping[int, float] = field(default_factory=dict)
     tick_wall_s: float = 0.005
-    battery_endurance_s: float = 1200.0
+    battery_endurance_s: float | None = None
     client_timeout_s: float = 60.0

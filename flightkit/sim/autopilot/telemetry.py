@@ -31,7 +31,7 @@ class _AutopilotTelemetry(_AutopilotFlight):
         if self._battery_override is not None:
             frac = self._battery_override
         else:
-            frac = max(0.0, 1.0 - self._battery_used_s / self.options.battery_endurance_s)
+            frac = max(0.0, 1.0 - self._battery_used_s / self._battery_endurance_s())
         volts = 4.0 * (3.5 + 0.7 * frac)
         return frac, volts
 
@@ -86,7 +86,7 @@ class _AutopilotTelemetry(_AutopilotFlight):
             consumed_mah,
             -1,
             int(round(frac * 100)),
-            int(frac * self.options.battery_endurance_s),
+            int(frac * self._battery_endurance_s()),
             mav.MAV_BATTERY_CHARGE_STATE_OK if frac > 0.2 else mav.MAV_BATTERY_CHARGE_STATE_LOW,
         )
 
