@@ -120,7 +120,9 @@ def interval_rates(
     slerp: Slerp, start_s: npt.NDArray[np.float64], stop_s: npt.NDArray[np.float64]
 ) -> npt.NDArray[np.float64]:
     """The mean body rate over each interval [start, stop] of an interpolated orientation track,
-    rad/s (N, 3): the rate a sensor sampling at those instants would see."""
-    r0 = slerp(start_s)
-    r1 = slerp(stop_s)
+    rad/s (N, 3): the rate a sensor sampling at those instants would see. Instants a rounding
+    error outside the track are taken at its ends."""
+    lo, hi = float(slerp.times[0]), float(slerp.times[-1])
+    r0 = slerp(np.clip(start_s, lo, hi))
+    r1 = slerp(np.clip(stop_s, lo, hi))
     return np.asarray((r0.inv() * r1).as_rotvec() / (stop_s - start_s)[:, None], dtype=np.float64)

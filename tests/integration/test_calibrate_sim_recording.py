@@ -20,7 +20,7 @@ from flightkit.sim.publish import SimLabPublishers
 from tests.conftest import free_tcp_port, wait
 from trajectories.patterns import Circle
 
-MOCAP_HZ, CAMERA_HZ, SECONDS = 120, 30, 24.0
+MOCAP_HZ, CAMERA_HZ, SECONDS = 120, 30, 16.0
 
 
 class _Lab:

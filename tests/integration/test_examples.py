@@ -35,7 +35,7 @@ def test_every_example_script_is_tested() -> None:
 
 def test_fly_circle_script_api(tmp_path: Path) -> None:
     r = run_example(
-        "fly_circle.py", "--speed", "3", "--laps", "1", "--period", "20", "--hold", "0.5", cwd=tmp_path
+        "fly_circle.py", "--speed", "5", "--laps", "1", "--period", "20", "--hold", "0.5", cwd=tmp_path
     )
     assert r.returncode == 0, r.stderr[-3000:]
     assert "flight 'circle': completed" in r.stdout

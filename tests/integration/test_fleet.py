@@ -23,7 +23,7 @@ from trajectories.supervisor import FaultKind
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 SPEED = 3.0  # three vehicles' loops, autopilots and one mocap system in one process on 2 cores
-MAVSDK_SPEED = 2.0  # MAVSDK itself runs on wall time (tests/integration/test_fly_patterns.py)
+MAVSDK_SPEED = 3.0  # MAVSDK itself runs on wall time (tests/integration/test_fly_patterns.py)
 SETTINGS = PlanSettings(rate_hz=50.0, takeoff_height_m=1.2)
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(300)]

@@ -35,7 +35,7 @@ from trajectories.plan import Plan, load_plan
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 SPEED = 5.0  # the 2-core machine keeps up at 5x (20x starves the loop)
-MAVSDK_SPEED = 2.0  # the MAVSDK backend times its stream on the clock but MAVSDK itself runs on wall time
+MAVSDK_SPEED = 3.0  # the MAVSDK backend times its stream on the clock but MAVSDK itself runs on wall time
 
 # Quiet machine: pattern RMS 5-10 mm, max 21-54 mm. Under the shared machine's load a stalled
 # event loop (0.1 s wall = 0.5 s sim) has given RMS 18 mm and max 88 mm; the bounds allow that.

@@ -365,3 +365,17 @@ def test_stream_health_names_the_bound_it_breaks() -> None:
     assert "below 50 Hz" in probs[0] and "above 50 ms" in probs[1] and "above 5 ms" in probs[2]
     with pytest.raises(CalibrationError, match="not flowing"):
         stream_health([T0_NS], now)
+
+
+def test_interval_rates_take_instants_a_rounding_error_outside_the_track_at_its_ends() -> None:
+    from scipy.spatial.transform import Slerp
+
+    from flightkit.calibration.rates import interval_rates
+
+    times = np.linspace(0.0, 16.0 - 1e-9, 161)  # a track whose end is not a round number
+    track = Slerp(times, Rotation.from_rotvec(np.outer(times, [0.0, 0.0, 0.5])))  # 0.5 rad/s yaw
+    start = np.array([0.0, 8.0, times[-1] - 0.1])
+    stop = start + 0.1 + 1e-12  # the last interval ends a rounding error past the track
+    w = interval_rates(track, start, stop)
+    assert w.shape == (3, 3)
+    assert np.allclose(w[:, 2], 0.5, atol=1e-6)
