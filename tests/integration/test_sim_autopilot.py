@@ -421,7 +421,7 @@ def test_px4_offboard_rules_and_loss_failsafe(make_lab: Callable[..., SimLab], c
     assert hb.custom_mode == PX4_POSCTL
     assert 0.9 <= t_switch - t_stop <= 1.5, t_switch - t_stop
     lab.wait_until(lambda: math.hypot(*lab.truth().vel_enu_m_s[:2]) < 0.1, timeout_s=5.0, what="braking")
-    assert lab.clock.monotonic_s() - t_switch < 2.5
+    assert lab.clock.monotonic_s() - t_stop <= 2.3  # PX4 SITL: braked within ~2 s of the setpoints stopping
     # in the air, OFFBOARD is refused until setpoints have streamed for ~1 s
     assert c.set_mode(PX4_OFFBOARD) == mav.MAV_RESULT_TEMPORARILY_REJECTED
     c.stream(mav.MAV_FRAME_LOCAL_NED, VEL_YAW, _vel(0, 0, 0, yaw=0.0))
