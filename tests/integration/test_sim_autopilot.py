@@ -14,6 +14,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import replace
 from typing import Any
 
+import numpy as np
 import pytest
 from pymavlink import mavutil
 
@@ -647,9 +648,13 @@ def test_ardupilot_gcs_failsafe_watches_mav_gcs_sysid_only(
     assert lab.autopilot.armed and lab.autopilot.mode.value == "GUIDED"
 
 
-def test_px4_companion_dies_with_offboard_loss_land(make_lab: Callable[..., SimLab], clients: list[Client]) -> None:
-    """COM_OBL_RC_ACT = 4: COM_OF_LOSS_T after the last setpoint PX4 lands and disarms."""
-    lab = make_lab("px4", options=AutopilotOptions(params={"COM_OBL_RC_ACT": 4}))
+@pytest.mark.parametrize(("action", "mode"), [(0, "POSCTL"), (4, "LAND")])
+def test_px4_companion_dies_offboard_loss_action(
+    make_lab: Callable[..., SimLab], clients: list[Client], action: int, mode: str
+) -> None:
+    """COM_OF_LOSS_T after the last setpoint PX4 switches to COM_OBL_RC_ACT: 0 Position (brakes
+    and holds, armed), 4 Land (lands and disarms)."""
+    lab = make_lab("px4", options=AutopilotOptions(params={"COM_OBL_RC_ACT": action}))
     c = _client(clients, lab)
     c.stream(mav.MAV_FRAME_LOCAL_NED, VEL_YAW, _vel(0, 0, -1.5, yaw=0.0))
     t_stream = lab.clock.monotonic_s()
@@ -659,10 +664,16 @@ def test_px4_companion_dies_with_offboard_loss_land(make_lab: Callable[..., SimL
     _wait_local(c, lambda m: m.z < -1.5, timeout_s=15.0)
     c.close()
     t_stop = c.last_sent_s
-    t_switch = _event_s(lab, "mode", "OFFBOARD -> LAND", after_s=t_stop)
+    t_switch = _event_s(lab, "mode", f"OFFBOARD -> {mode}", after_s=t_stop)
     assert 0.9 <= t_switch - t_stop <= 1.5, t_switch - t_stop  # COM_OF_LOSS_T 1 s
-    _event_s(lab, "disarmed", after_s=t_switch, timeout_s=15.0)
-    assert lab.truth().on_ground
+    if action == 4:
+        _event_s(lab, "disarmed", after_s=t_switch, timeout_s=15.0)
+        assert lab.truth().on_ground
+        return
+    lab.wait_until(lambda: lab.clock.monotonic_s() > t_switch + 5.0, timeout_s=10.0, what="5 s in POSCTL")
+    state = lab.truth()
+    assert lab.autopilot.armed and lab.autopilot.mode.value == mode and not state.on_ground
+    assert float(np.linalg.norm(state.vel_enu_m_s)) < 0.1
 
 
 # ---------------------------------------------------------------- the independent judge: MAVSDK
