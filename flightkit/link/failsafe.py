@@ -47,6 +47,8 @@ _APM_GCS_ACTIONS = {
     6: "returns (DO_LAND_START or RTL) and lands",
 }
 
+_APM_GCS_BRAKE = 7  # "Brake or Land": BRAKE whenever it has a position, and BRAKE never lands
+
 _PX4_OFFBOARD_LOSS_MODES = {
     0: "Position mode",
     1: "Altitude mode",
@@ -134,6 +136,12 @@ def _ardupilot(params: Mapping[str, float], our_system_id: int) -> CompanionLoss
             " (FS_GCS_ENABLE = 0)",
             "ArduCopter's GCS failsafe is off (FS_GCS_ENABLE = 0); set FS_GCS_ENABLE = 5 (land) so the "
             "vehicle lands when flightkit's heartbeat stops (docs/hardware.md)",
+        )
+    if enable == _APM_GCS_BRAKE:
+        return hovering(
+            " (FS_GCS_ENABLE = 7: its GCS failsafe brakes and holds in BRAKE)",
+            "ArduCopter's GCS failsafe with FS_GCS_ENABLE = 7 switches to BRAKE, which holds the vehicle "
+            "armed in the air while it has a position; set FS_GCS_ENABLE = 5 (land)",
         )
     if gcs_id is None:
         unread.append("MAV_GCS_SYSID")

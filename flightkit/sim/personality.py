@@ -303,6 +303,7 @@ ARDUPILOT = Personality(
             "ev_fusion_on": "EKF3 IMU0 is using external nav data",
             "ev_fusion_off": "EKF3 IMU0 stopped using external nav data",
             "rtl": "RTL: returning at {alt:.1f} m",
+            "gcs_lost": "GCS Failsafe",
             "takeoff_not_armed": "Takeoff: vehicle not armed",
             "takeoff_wrong_mode": "Takeoff: only in GUIDED",
         }

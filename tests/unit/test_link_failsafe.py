@@ -46,6 +46,11 @@ def test_arducopter_gcs_failsafe_watching_us_lands(enable: int, action: str) -> 
     assert f"3.5 s (FS_GCS_TIMEOUT) after flightkit's last heartbeat its GCS failsafe {action}" in v.summary
 
 
+def test_arducopter_gcs_failsafe_brake_hovers() -> None:
+    v = companion_loss(Autopilot.ARDUPILOT, apm(FS_GCS_ENABLE=7), 255)
+    assert v.hovers and "FS_GCS_ENABLE = 7" in v.summary and "set FS_GCS_ENABLE = 5" in v.reason
+
+
 def test_arducopter_gcs_failsafe_watching_another_system_hovers() -> None:
     v = companion_loss(Autopilot.ARDUPILOT, apm(FS_GCS_ENABLE=5, MAV_GCS_SYSID=255), 200)
     assert v.hovers and "set MAV_GCS_SYSID = 200" in v.reason

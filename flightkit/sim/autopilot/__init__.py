@@ -5,7 +5,7 @@ firmware its :class:`~flightkit.sim.personality.Personality` describes: heartbea
 firmware's custom-mode numbers, message streams whose rates clients can change, commands
 answered with COMMAND_ACK, the parameter protocol, arming checks, take-off, landing, RTL,
 velocity / position setpoints with the firmware's rules (PX4 OFFBOARD stream requirements
-and loss failsafe, ArduPilot GUIDED timeout), external vision fusion, and MAVLink 2 signing.
+and loss failsafe, ArduPilot GUIDED timeout and GCS failsafe), external vision fusion, and MAVLink 2 signing.
 It drives a :class:`~flightkit.sim.dynamics.QuadDynamics` on a :class:`~flightkit.clock.Clock`,
 so a whole flight can run many times faster than real time.
 

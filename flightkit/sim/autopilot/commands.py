@@ -72,6 +72,9 @@ class _AutopilotInbound(_AutopilotTelemetry):
     def _handle(self, msg: Any, now: float) -> None:
         mtype = msg.get_type()
         if mtype == "HEARTBEAT":
+            if msg.get_srcSystem() == int(self._params.get("MAV_GCS_SYSID", -1)):
+                self._gcs_seen_s = now  # ArduCopter's GCS failsafe watches this system only
+                self._gcs_failsafe = False
             if msg.type == mav.MAV_TYPE_GCS:
                 if not self._gcs_heard:
                     self._gcs_heard = True

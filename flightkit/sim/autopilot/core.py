@@ -165,6 +165,9 @@ class _AutopilotCore:
         self._setpoint: _Setpoint | None = None
         self._stream_start_s: float | None = None
         self._gcs_heard = False
+        self._gcs_seen_s: float | None = None  # last HEARTBEAT from MAV_GCS_SYSID (ArduPilot)
+        self._gcs_failsafe = False
+        self._land_pause_until_s = -math.inf  # ArduCopter's failsafe LAND holds this long first
         self._text_id = 0
         self._frames_warned: set[int] = set()
         self._failsafe = False

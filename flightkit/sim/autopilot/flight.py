@@ -39,6 +39,21 @@ _HOLD_LIKE = frozenset(
 )
 
 
+# ArduCopter's GCS failsafe action per FS_GCS_ENABLE (its events.cpp): 1 RTL, 2 RTL outside AUTO,
+# 3 SmartRTL or RTL, 4 SmartRTL or LAND, 5 LAND, 6 DO_LAND_START or RTL, 7 BRAKE or LAND. The
+# simulator records no SmartRTL path and flies no mission, so 3 and 6 return (RTL) and 4 lands.
+_GCS_FAILSAFE_MODES = {
+    1: FlightMode.RTL,
+    2: FlightMode.RTL,
+    3: FlightMode.RTL,
+    4: FlightMode.LAND,
+    5: FlightMode.LAND,
+    6: FlightMode.RTL,
+    7: FlightMode.BRAKE,
+}
+_LAND_PAUSE_S = 4.0  # ArduCopter's failsafe LAND holds position this long before descending
+
+
 class _AutopilotFlight(_AutopilotCore):
     """Modes, control, ground state and estimator (the firmware's flight logic)."""
 
@@ -56,6 +71,7 @@ class _AutopilotFlight(_AutopilotCore):
         if mode is not self.personality.setpoint_mode:
             self._guided_target = None
         self._failsafe = why == "failsafe"
+        self._land_pause_until_s = -math.inf
         self._event("mode", f"{old.value} -> {mode.value}{' (' + why + ')' if why else ''}")
         self._send_heartbeat(self.clock.monotonic_s())
 
@@ -90,6 +106,9 @@ class _AutopilotFlight(_AutopilotCore):
                 self._statustext(p.text("offboard_lost"), mav.MAV_SEVERITY_CRITICAL)
                 self._set_mode(target, "failsafe")
                 self._event("failsafe", "offboard signal lost")
+        self._check_gcs_failsafe(now)
+        if not self._armed:
+            return
         # auto-disarm on the ground
         if self.dynamics.on_ground:
             if self._touchdown_s is not None:
@@ -100,6 +119,26 @@ class _AutopilotFlight(_AutopilotCore):
                 delay = self._disarm_preflight_s()
                 if delay > 0 and now - self._armed_at_s >= delay and self._takeoff_alt_local_m is None:
                     self._disarm(now, p.text("auto_disarm_preflight"), "preflight timeout")
+
+    def _check_gcs_failsafe(self, now: float) -> None:
+        """ArduCopter's GCS failsafe: ``FS_GCS_TIMEOUT`` after the last HEARTBEAT from system
+        ``MAV_GCS_SYSID`` (once one was heard), act on ``FS_GCS_ENABLE``; disarm if landed."""
+        enable = int(self._params.get("FS_GCS_ENABLE", 0))
+        seen = self._gcs_seen_s
+        if enable == 0 or seen is None or self._gcs_failsafe:
+            return
+        if now - seen <= self._params["FS_GCS_TIMEOUT"]:
+            return
+        self._gcs_failsafe = True
+        self._statustext(self.personality.text("gcs_lost"), mav.MAV_SEVERITY_CRITICAL)
+        self._event("failsafe", "GCS heartbeat lost")
+        if self.dynamics.on_ground:
+            self._disarm(now, self.personality.text("auto_disarm_land"), "GCS failsafe on the ground")
+            return
+        target = _GCS_FAILSAFE_MODES.get(enable, FlightMode.LAND)
+        self._set_mode(target, "failsafe")
+        if target is FlightMode.LAND:
+            self._land_pause_until_s = now + _LAND_PAUSE_S
 
     def _disarm_after_land_s(self) -> float:
         p = self.personality
@@ -181,7 +220,7 @@ class _AutopilotFlight(_AutopilotCore):
                 self._hold_target = est.copy()
                 self._hold_yaw = self._est_yaw_local()
             vel_local = self._goto(np.array([self._hold_target[0], self._hold_target[1], est[2]]), 1.0, 0.0)
-            vel_local[2] = -self._land_speed()
+            vel_local[2] = 0.0 if now < self._land_pause_until_s else -self._land_speed()
             yaw_local, yaw_rate = self._hold_yaw, None
         elif mode is p.rtl_mode:
             vel_local, yaw_local, yaw_rate = self._rtl_command()
