@@ -147,8 +147,8 @@ class VisualOdometry:
             raise EstimationError(f"unknown VO method {method!r}; use one of {names}") from exc
         given = options or VoOptions()
         # Pixel options are given at REF_FOCAL_PX: this camera's pixels from here on.
-        self.opts = o = replace(given, estimator=given.estimator_options(self.method)).for_focal(
-            math.sqrt(intrinsics.fx * intrinsics.fy)
+        self.opts = o = replace(given, estimator=given.estimator_options(self.method)).for_camera(
+            math.sqrt(intrinsics.fx * intrinsics.fy), intrinsics.width
         )
         if self.method is Method.STEREO and not baseline_m:
             raise EstimationError("method 'stereo' needs a stereo baseline; the sequence has no right camera")

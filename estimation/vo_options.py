@@ -163,26 +163,30 @@ _OPTIONS_OF: dict[Method, type[EstimatorOptions]] = {
 
 
 REF_FOCAL_PX = 525.0
-"""The focal length (px) at which every ``*_px`` option holds as written (:meth:`VoOptions.for_focal`)."""
+"""The focal length (px) at which every ``*_px`` option holds as written (:meth:`VoOptions.for_camera`)."""
+REF_WIDTH_PX = 640
+"""The image width (px) at which the keyframe parallax holds as written."""
 
 _NOISE_PX: dict[type, tuple[str, ...]] = {
     PnpOptions: ("prior_gate_px",),
     EssentialOptions: ("threshold_px", "prior_gate_px", "pnp_prior_gate_px"),
     KabschOptions: (),
-    FlowOptions: ("threshold_px",),
+    FlowOptions: ("threshold_px", "ref_px"),
     KeyframePolicy: (),
 }
 """Tolerances on measured pixels: they grow with the focal length above ``REF_FOCAL_PX`` and
-never shrink below their value (tracking noise is about a pixel at any image size)."""
+never shrink below their value (tracking noise is about a pixel at any image size). Flow's
+``ref_px`` is one too: it bounds how far LK tracks from one reference, in LK's pixels."""
 
 _GEOMETRIC_PX: dict[type, tuple[str, ...]] = {
     PnpOptions: (),
     EssentialOptions: ("min_parallax_px",),
     KabschOptions: (),
-    FlowOptions: ("ref_px",),
-    KeyframePolicy: ("max_parallax_px",),
+    FlowOptions: (),
+    KeyframePolicy: (),
 }
-"""Image motions (parallax): they are angles, so they scale with the focal length both ways."""
+"""Image motions (parallax): they are angles, so they scale with the focal length both ways.
+(The keyframe parallax is a share of the image width instead: how much of the view has moved.)"""
 
 
 def _odd_window(win_px: float, smallest: int) -> int:
@@ -202,7 +206,8 @@ class VoOptions:
 
     Every ``*_px`` option (here, in the estimator's options and in ``keyframes``) is in pixels of
     a camera with a focal length of ``REF_FOCAL_PX`` (525 px: a 640x480 Kinect-class camera);
-    a run converts them to its camera by :meth:`for_focal`, so the same defaults hold from
+    a run converts them to its camera by :meth:`for_camera` (the keyframe parallax at a
+    640 px wide image), so the same defaults hold from
     320x240 to 1280x720.
 
     Attributes:
@@ -268,20 +273,22 @@ class VoOptions:
     ba_window: int = 0
     seed: int = 0
 
-    def for_focal(self, focal_px: float) -> VoOptions:
-        """These options in the pixels of a camera with focal length ``focal_px``: image motions
-        (keyframe parallax, ...) times ``focal_px / REF_FOCAL_PX``; tolerances on measured pixels
-        (thresholds, gates, minimum disparity) times that ratio when it is above 1; LK windows
-        times the ratio, odd and at least 9 px."""
+    def for_camera(self, focal_px: float, width_px: int) -> VoOptions:
+        """These options in the pixels of a camera with focal length ``focal_px`` and images
+        ``width_px`` wide: image motions times ``focal_px / REF_FOCAL_PX``; tolerances on measured
+        pixels (thresholds, gates, minimum disparity) times that ratio when it is above 1; LK
+        windows times the ratio, odd and at least 9 px; the keyframe parallax times
+        ``width_px / REF_WIDTH_PX``."""
         s = focal_px / REF_FOCAL_PX
         n = max(1.0, s)
         est = self.estimator
         if est is not None:
             est = _scale_px(_scale_px(est, n, _NOISE_PX[type(est)]), s, _GEOMETRIC_PX[type(est)])
+        kf = self.keyframes
         return replace(
             self,
             estimator=est,
-            keyframes=_scale_px(self.keyframes, s, _GEOMETRIC_PX[KeyframePolicy]),
+            keyframes=replace(kf, max_parallax_px=kf.max_parallax_px * width_px / REF_WIDTH_PX),
             cell_px=round(self.cell_px * s),
             klt_win_px=_odd_window((self.klt_win_px or 11) * s, 9),
             stereo_win_px=_odd_window(self.stereo_win_px * s, 9) if self.stereo_win_px else 0,

@@ -421,16 +421,17 @@ def test_pixel_options_follow_the_focal_length() -> None:
     # A squashed image (KITTI resized to 320x240) uses the geometric mean of fx and fy.
     intr = CameraIntrinsics(0.5 * REF_FOCAL_PX, 2.0 * REF_FOCAL_PX, 159.5, 119.5, 320, 240)
     o = VisualOdometry("rgbd-essential", intr, depth_intrinsics=intr, options=opts).opts
-    assert (o.reproj_px, o.fb_max_px, o.min_disparity_px, o.keyframes.max_parallax_px) == (3.0, 1.0, 3.0, 20.0)
+    assert (o.reproj_px, o.fb_max_px, o.min_disparity_px) == (3.0, 1.0, 3.0)
+    assert o.keyframes.max_parallax_px == 10.0  # a share of the image width (640 px reference)
     # Twice the focal length: tolerances and image motions double.
-    o2 = opts.for_focal(2.0 * REF_FOCAL_PX)
+    o2 = opts.for_camera(2.0 * REF_FOCAL_PX, 1280)
     assert (o2.reproj_px, o2.fb_max_px, o2.klt_trust_prior_px, o2.min_disparity_px) == (6.0, 2.0, 4.0, 6.0)
     assert o2.keyframes.max_parallax_px == 40.0
     assert isinstance(o2.estimator, EssentialOptions)
     assert (o2.estimator.threshold_px, o2.estimator.min_parallax_px) == (4.0, 6.0)
     assert o2.keyframes.min_tracked == opts.keyframes.min_tracked  # counts are not pixels
     # Half of it: image motions halve, tolerances stay (the tracking noise does not shrink).
-    o3 = opts.for_focal(0.5 * REF_FOCAL_PX)
+    o3 = opts.for_camera(0.5 * REF_FOCAL_PX, 320)
     assert (o3.reproj_px, o3.fb_max_px, o3.keyframes.max_parallax_px) == (3.0, 1.0, 10.0)
     assert isinstance(o3.estimator, EssentialOptions)
     assert (o3.estimator.threshold_px, o3.estimator.min_parallax_px) == (2.0, 1.5)
