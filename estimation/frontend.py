@@ -74,9 +74,7 @@ class CameraGeometry:
         """Added to every measured disparity before triangulation (``estimation.stereo_offset``)."""
         # A virtual baseline that turns depth-image depth into a disparity for the pose polish.
         self.virtual_baseline_m = float(baseline_m) if baseline_m else 0.1
-        w = intrinsics.width
-        small = w <= 400
-        self.klt_win = options.klt_win_px or (9 if small else 11)
+        self.klt_win = options.klt_win_px or 11
         self.klt_levels = 3 if options.klt_levels is None else options.klt_levels
         self.klt_back_levels = min(options.klt_back_levels, self.klt_levels)
         self.stereo_win = options.stereo_win_px or self.klt_win

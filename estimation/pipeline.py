@@ -49,10 +49,11 @@ Frames: camera frames are OpenCV; the world frame is the first camera's unless
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import cv2
@@ -144,7 +145,11 @@ class VisualOdometry:
         except ValueError as exc:
             names = ", ".join(m.value for m in Method)
             raise EstimationError(f"unknown VO method {method!r}; use one of {names}") from exc
-        self.opts = o = options or VoOptions()
+        given = options or VoOptions()
+        # Pixel options are given at REF_FOCAL_PX: this camera's pixels from here on.
+        self.opts = o = replace(given, estimator=given.estimator_options(self.method)).for_camera(
+            math.sqrt(intrinsics.fx * intrinsics.fy), intrinsics.width
+        )
         if self.method is Method.STEREO and not baseline_m:
             raise EstimationError("method 'stereo' needs a stereo baseline; the sequence has no right camera")
         stereo = self.method is Method.STEREO
@@ -153,12 +158,6 @@ class VisualOdometry:
         self.T_camera_body = invert(self.T_body_camera)
         self.pose = PoseTrack((T_world_camera0 or Transform.identity()).as_matrix(), o.max_speed_m_s, o.max_rate_rad_s)
         self.on_pose = on_pose
-        ref_w = o.parallax_ref_width_px
-        self.parallax_scale = (
-            max(1.0, ref_w / intrinsics.width)
-            if ref_w and self.method in (Method.RGBD_PNP, Method.RGBD_ESSENTIAL)
-            else 1.0
-        )
         self.rng = np.random.default_rng(o.seed)
         self.index = 0
         self._waited_frames = 0  # frames an RGB-D method held its start pose for lack of depth
@@ -383,7 +382,7 @@ class VisualOdometry:
         parallax = np.linalg.norm(front.trk_px - front.kf_px, axis=1) if len(front.trk_px) else np.zeros(1)
         depth = median(front.kf_X[:, 2]) if len(front.kf_X) else float("inf")
         decision = o.keyframes.decide(
-            parallax * self.parallax_scale, len(front.trk_px), front.kf_n0, T_cur_kf, self.kf_since, depth
+            parallax, len(front.trk_px), front.kf_n0, T_cur_kf, self.kf_since, depth
         )
         is_kf = decision.new_keyframe or fallback
         if is_kf:

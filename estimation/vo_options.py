@@ -9,10 +9,13 @@ Each option is one line here; how each default was chosen is in docs/estimation-
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from typing import TypeVar
 
 from estimation.keyframes import KeyframePolicy
 from flightkit.errors import EstimationError
+
+_T = TypeVar("_T")
 
 __all__ = ["EssentialOptions", "EstimatorOptions", "FlowOptions", "KabschOptions", "Method", "PnpOptions", "VoOptions"]
 
@@ -159,17 +162,60 @@ _OPTIONS_OF: dict[Method, type[EstimatorOptions]] = {
 }
 
 
+REF_FOCAL_PX = 525.0
+"""The focal length (px) at which every ``*_px`` option holds as written (:meth:`VoOptions.for_camera`)."""
+REF_WIDTH_PX = 640
+"""The image width (px) at which the keyframe parallax holds as written."""
+
+_NOISE_PX: dict[type, tuple[str, ...]] = {
+    PnpOptions: ("prior_gate_px",),
+    EssentialOptions: ("threshold_px", "prior_gate_px", "pnp_prior_gate_px"),
+    KabschOptions: (),
+    FlowOptions: ("threshold_px", "ref_px"),
+    KeyframePolicy: (),
+}
+"""Tolerances on measured pixels: they grow with the focal length above ``REF_FOCAL_PX`` and
+never shrink below their value (tracking noise is about a pixel at any image size). Flow's
+``ref_px`` is one too: it bounds how far LK tracks from one reference, in LK's pixels."""
+
+_GEOMETRIC_PX: dict[type, tuple[str, ...]] = {
+    PnpOptions: (),
+    EssentialOptions: ("min_parallax_px",),
+    KabschOptions: (),
+    FlowOptions: (),
+    KeyframePolicy: (),
+}
+"""Image motions (parallax): they are angles, so they scale with the focal length both ways.
+(The keyframe parallax is a share of the image width instead: how much of the view has moved.)"""
+
+
+def _odd_window(win_px: float, smallest: int) -> int:
+    """An odd LK window of about ``win_px``, at least ``smallest``."""
+    return max(smallest, int(round((win_px - 1) / 2)) * 2 + 1)
+
+
+def _scale_px(obj: _T, scale: float, names: tuple[str, ...]) -> _T:
+    """A copy of the options ``obj`` with the fields ``names`` (px) times ``scale``."""
+    return replace(obj, **{n: getattr(obj, n) * scale for n in names}) if names else obj  # type: ignore[type-var]
+
+
 @dataclass(frozen=True, slots=True)
 class VoOptions:
     """Options shared by every method (front end, checks, keyframes), and the method's own.
     How each default was chosen, with measurements: docs/estimation-log.md.
+
+    Every ``*_px`` option (here, in the estimator's options and in ``keyframes``) is in pixels of
+    a camera with a focal length of ``REF_FOCAL_PX`` (525 px: a 640x480 Kinect-class camera);
+    a run converts them to its camera by :meth:`for_camera` (the keyframe parallax at a
+    640 px wide image), so the same defaults hold from
+    320x240 to 1280x720.
 
     Attributes:
         estimator: the method's options (:class:`PnpOptions`, ...; None: the method's defaults).
         max_features: corners kept per keyframe.
         cell_px: grid cell of the corner detector, px (0: from the image size and the budget).
         fast_threshold: FAST threshold (grey levels).
-        klt_win_px, klt_levels: LK window, px (0: 9 up to 400 px wide, else 11); levels (None: 3).
+        klt_win_px, klt_levels: LK window, px (0: 11, at least 9 after scaling); levels (None: 3).
         klt_back_levels: pyramid levels of the backward (checking) LK pass (at most ``klt_levels``).
         klt_iters: LK iterations per pyramid level at most.
         stereo_win_px: LK window of the left-right disparity search, px (0: the tracking window).
@@ -192,7 +238,6 @@ class VoOptions:
             see docs/estimation-log.md).
         orb_fallback: match ORB against the keyframe when tracking fails (``FALLBACK``).
         keyframes: the keyframe policy (:class:`~estimation.keyframes.KeyframePolicy`).
-        parallax_ref_width_px: rgbd-pnp/-essential on narrower images: parallax scaled to this width.
         ba_window: local bundle adjustment over this many keyframes (0: off).
         seed: RANSAC random seed (repeatable runs).
     """
@@ -225,9 +270,33 @@ class VoOptions:
     stereo_offset: bool = False
     orb_fallback: bool = True
     keyframes: KeyframePolicy = field(default_factory=KeyframePolicy)
-    parallax_ref_width_px: int = 640
     ba_window: int = 0
     seed: int = 0
+
+    def for_camera(self, focal_px: float, width_px: int) -> VoOptions:
+        """These options in the pixels of a camera with focal length ``focal_px`` and images
+        ``width_px`` wide: image motions times ``focal_px / REF_FOCAL_PX``; tolerances on measured
+        pixels (thresholds, gates, minimum disparity) times that ratio when it is above 1; LK
+        windows times the ratio, odd and at least 9 px; the keyframe parallax times
+        ``width_px / REF_WIDTH_PX``."""
+        s = focal_px / REF_FOCAL_PX
+        n = max(1.0, s)
+        est = self.estimator
+        if est is not None:
+            est = _scale_px(_scale_px(est, n, _NOISE_PX[type(est)]), s, _GEOMETRIC_PX[type(est)])
+        kf = self.keyframes
+        return replace(
+            self,
+            estimator=est,
+            keyframes=replace(kf, max_parallax_px=kf.max_parallax_px * width_px / REF_WIDTH_PX),
+            cell_px=round(self.cell_px * s),
+            klt_win_px=_odd_window((self.klt_win_px or 11) * s, 9),
+            stereo_win_px=_odd_window(self.stereo_win_px * s, 9) if self.stereo_win_px else 0,
+            fb_max_px=self.fb_max_px * n,
+            klt_trust_prior_px=self.klt_trust_prior_px * n,
+            reproj_px=self.reproj_px * n,
+            min_disparity_px=self.min_disparity_px * n,
+        )
 
     def estimator_options(self, method: Method) -> EstimatorOptions:
         """The options of ``method``'s estimator: ``estimator`` when set, else that estimator's defaults.

@@ -391,21 +391,50 @@ def test_vo_options_reject_bad_values() -> None:
         VisualOdometry("stereo", intr, baseline_m=0.1, options=VoOptions(estimator=KabschOptions()))
 
 
-def test_lk_window_and_pyramid_follow_the_image_size_unless_set() -> None:
+def test_lk_window_and_pyramid_follow_the_focal_length() -> None:
     from estimation.pipeline import VisualOdometry, VoOptions
     from flightkit.datasets.base import CameraIntrinsics
 
     small = CameraIntrinsics(260.0, 260.0, 159.5, 119.5, 320, 240)
-    large = CameraIntrinsics(520.0, 520.0, 319.5, 239.5, 640, 480)
-    vo = VisualOdometry("stereo", small, baseline_m=0.1)
-    g = vo.geo
-    assert (g.klt_win, g.klt_levels, g.klt_back_levels, g.stereo_win) == (9, 3, 1, 9)
+    large = CameraIntrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)
+    wide = CameraIntrinsics(1050.0, 1050.0, 639.5, 359.5, 1280, 720)
+    g = VisualOdometry("stereo", small, baseline_m=0.1).geo
+    assert (g.klt_win, g.klt_levels, g.klt_back_levels, g.stereo_win) == (9, 3, 1, 9)  # 5.4 px, at least 9
     g = VisualOdometry("stereo", large, baseline_m=0.1).geo
     assert (g.klt_win, g.klt_levels, g.klt_back_levels, g.stereo_win) == (11, 3, 1, 11)
+    g = VisualOdometry("stereo", wide, baseline_m=0.1).geo
+    assert (g.klt_win, g.stereo_win) == (21, 21)
+    # Windows given at the reference focal length scale too; the backward pass never uses
+    # more levels than the forward one.
     opts = VoOptions(klt_win_px=15, klt_levels=1, klt_back_levels=3, stereo_win_px=21)
-    g = VisualOdometry("stereo", small, baseline_m=0.1, options=opts).geo
-    # The backward pass never uses more levels than the forward one.
-    assert (g.klt_win, g.klt_levels, g.klt_back_levels, g.stereo_win) == (15, 1, 1, 21)
+    g = VisualOdometry("stereo", wide, baseline_m=0.1, options=opts).geo
+    assert (g.klt_win, g.klt_levels, g.klt_back_levels, g.stereo_win) == (29, 1, 1, 41)
+
+
+def test_pixel_options_follow_the_focal_length() -> None:
+    from estimation.keyframes import KeyframePolicy
+    from estimation.pipeline import EssentialOptions, VisualOdometry, VoOptions
+    from estimation.vo_options import REF_FOCAL_PX
+    from flightkit.datasets.base import CameraIntrinsics
+
+    opts = VoOptions(estimator=EssentialOptions(threshold_px=2.0), keyframes=KeyframePolicy(max_parallax_px=20.0))
+    # A squashed image (KITTI resized to 320x240) uses the geometric mean of fx and fy.
+    intr = CameraIntrinsics(0.5 * REF_FOCAL_PX, 2.0 * REF_FOCAL_PX, 159.5, 119.5, 320, 240)
+    o = VisualOdometry("rgbd-essential", intr, depth_intrinsics=intr, options=opts).opts
+    assert (o.reproj_px, o.fb_max_px, o.min_disparity_px) == (3.0, 1.0, 3.0)
+    assert o.keyframes.max_parallax_px == 10.0  # a share of the image width (640 px reference)
+    # Twice the focal length: tolerances and image motions double.
+    o2 = opts.for_camera(2.0 * REF_FOCAL_PX, 1280)
+    assert (o2.reproj_px, o2.fb_max_px, o2.klt_trust_prior_px, o2.min_disparity_px) == (6.0, 2.0, 4.0, 6.0)
+    assert o2.keyframes.max_parallax_px == 40.0
+    assert isinstance(o2.estimator, EssentialOptions)
+    assert (o2.estimator.threshold_px, o2.estimator.min_parallax_px) == (4.0, 6.0)
+    assert o2.keyframes.min_tracked == opts.keyframes.min_tracked  # counts are not pixels
+    # Half of it: image motions halve, tolerances stay (the tracking noise does not shrink).
+    o3 = opts.for_camera(0.5 * REF_FOCAL_PX, 320)
+    assert (o3.reproj_px, o3.fb_max_px, o3.keyframes.max_parallax_px) == (3.0, 1.0, 10.0)
+    assert isinstance(o3.estimator, EssentialOptions)
+    assert (o3.estimator.threshold_px, o3.estimator.min_parallax_px) == (2.0, 1.5)
 
 
 def test_refine_pose_stops_when_converged_at_the_full_answer() -> None:
