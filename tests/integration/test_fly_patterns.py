@@ -274,7 +274,7 @@ def test_pva_targets_track_tighter_on_the_simulated_ardupilot(tmp_path: Path) ->
 
 
 def shortened_for_mavsdk(name: str) -> Plan:
-    """MAVSDK runs on wall time, so its flights run at 2x: a 20 s circle lap, and the rectangle and
+    """MAVSDK runs on wall time, so its flights run at 3x: a 20 s circle lap, and the rectangle and
     lawnmower with 1 s turns (same speed as above; 0.5 m/s gave 0.13 m max at the rectangle's
     corners through MAVSDK). The lawnmower covers half the width (two lanes, 2 m x 0.5 m): the
     lane change, the turns and the lane ends are all there in half the time."""
