@@ -49,6 +49,8 @@ class CameraGeometry:
         depth_intrinsics: the depth camera, when it differs from ``intrinsics``.
         options: the shared :class:`VoOptions`.
         use_depth_images: 3D points come from depth images (else from stereo).
+        depth_registered: the depth images are registered to the colour ones (weighs their depth
+            by the sensor's noise model, :func:`depth_weight_baseline_m`).
     """
 
     def __init__(
@@ -58,6 +60,7 @@ class CameraGeometry:
         depth_intrinsics: CameraIntrinsics | None,
         options: VoOptions,
         use_depth_images: bool,
+        depth_registered: bool = True,
     ) -> None:
         self.opts = options
         self.intr = intrinsics
@@ -72,8 +75,11 @@ class CameraGeometry:
         self.use_depth_images = use_depth_images
         self.disparity_offset_px = 0.0
         """Added to every measured disparity before triangulation (``estimation.stereo_offset``)."""
-        # A virtual baseline that turns depth-image depth into a disparity for the pose polish.
-        self.virtual_baseline_m = float(baseline_m) if baseline_m else 0.1
+        # A virtual baseline that turns depth-image depth into a disparity for the pose polish;
+        # it sets the depth residuals' weight against the reprojection (depth_weight_baseline_m).
+        self.virtual_baseline_m = float(baseline_m) if baseline_m else depth_weight_baseline_m(
+            intrinsics.fx, depth_registered, options
+        )
         self.klt_win = options.klt_win_px or 11
         self.klt_levels = 3 if options.klt_levels is None else options.klt_levels
         self.klt_back_levels = min(options.klt_back_levels, self.klt_levels)
@@ -193,6 +199,21 @@ class CameraGeometry:
         uv[:, 0] = u
         uv[:, 1] = v
         return uv, inside
+
+
+UNREGISTERED_DEPTH_BASELINE_M = 0.1
+"""The virtual baseline of depth looked up across two unregistered cameras (no noise model)."""
+
+
+def depth_weight_baseline_m(fx_px: float, registered: bool, options: VoOptions) -> float:
+    """The virtual baseline (m) at which a depth image's disparity ``fx b / z`` has the tracks'
+    noise: with ``sigma_z = depth_sigma_per_m2 z^2`` the disparity's noise is
+    ``fx b depth_sigma_per_m2`` at every depth, so ``b = track_sigma_px / (fx depth_sigma_per_m2)``.
+    Depth not ``registered`` to the colour image (another camera) has lookup errors this model
+    lacks: ``UNREGISTERED_DEPTH_BASELINE_M``, as before."""
+    if not registered or options.depth_sigma_per_m2 <= 0:
+        return UNREGISTERED_DEPTH_BASELINE_M
+    return options.track_sigma_px / (fx_px * options.depth_sigma_per_m2)
 
 
 def depth_weight(z: F64) -> F64:

@@ -119,6 +119,8 @@ class VisualOdometry:
         baseline_m: stereo baseline (``stereo``, and ``flow`` without depth).
         depth_intrinsics: the camera of the depth images, when it differs from ``intrinsics``
             (7-Scenes); depth pixels are looked up through the two pinhole models.
+        depth_registered: the depth images are registered to the colour images (TUM, the
+            simulator); False for another depth camera (7-Scenes): its depth is weighed less.
         T_body_camera: camera mounting (default: identity, the camera is the body).
         T_world_camera0: the first camera pose (default: identity).
         options: :class:`VoOptions`.
@@ -139,6 +141,7 @@ class VisualOdometry:
         T_world_camera0: Transform | None = None,
         options: VoOptions | None = None,
         on_pose: Callable[[FramePose], None] | None = None,
+        depth_registered: bool = True,
     ) -> None:
         try:
             self.method = Method(method)
@@ -153,7 +156,9 @@ class VisualOdometry:
         if self.method is Method.STEREO and not baseline_m:
             raise EstimationError("method 'stereo' needs a stereo baseline; the sequence has no right camera")
         stereo = self.method is Method.STEREO
-        self.geo = CameraGeometry(intrinsics, baseline_m, depth_intrinsics, o, use_depth_images=not stereo)
+        self.geo = CameraGeometry(
+            intrinsics, baseline_m, depth_intrinsics, o, use_depth_images=not stereo, depth_registered=depth_registered
+        )
         self.T_body_camera = (T_body_camera or Transform.identity()).as_matrix()
         self.T_camera_body = invert(self.T_body_camera)
         self.pose = PoseTrack((T_world_camera0 or Transform.identity()).as_matrix(), o.max_speed_m_s, o.max_rate_rad_s)
@@ -563,6 +568,8 @@ def run_vo(
                 T0,
                 options,
                 on_pose,
+                # sequences that do not say (TUM, the simulator, recordings) have registered depth
+                depth_registered=bool(getattr(sequence, "depth_registered", True)),
             )
         poses.append(vo.process(pf.stamp_ns, pf.gray, pf.right_gray, pf.depth_m))
         if progress is not None:

@@ -232,6 +232,9 @@ class VoOptions:
         max_depth_baselines: stereo points farther than this many baselines are not used (inf: all kept).
         min_disparity_px: stereo points with a smaller disparity are not used, px (the matching noise floor).
         refine_with_depth: polish poses on the current frame's depth too (``motion.refine_pose``).
+        depth_sigma_per_m2: depth images' noise: sigma_z = this x z^2 (Kinect v1: 1.425e-3 /m,
+            Khoshelham & Elberink 2012); weighs registered depth in the polish (0: the fixed 0.1 m weight).
+        track_sigma_px: the tracks' pixel noise the depth residuals are weighed against, px.
         fuse_depth: fuse each frame's depth of tracked points into their 3D estimates.
         stereo_fb_check: also check left-right stereo matches right-to-left.
         stereo_offset: stereo: estimate the pair's disparity offset online (``estimation.stereo_offset``; off:
@@ -265,6 +268,8 @@ class VoOptions:
     min_disparity_px: float = 3.0
     max_depth_baselines: float = 60.0
     refine_with_depth: bool = True
+    depth_sigma_per_m2: float = 1.425e-3
+    track_sigma_px: float = 0.5
     fuse_depth: bool = True
     stereo_fb_check: bool = False
     stereo_offset: bool = False
@@ -295,6 +300,7 @@ class VoOptions:
             fb_max_px=self.fb_max_px * n,
             klt_trust_prior_px=self.klt_trust_prior_px * n,
             reproj_px=self.reproj_px * n,
+            track_sigma_px=self.track_sigma_px * n,
             min_disparity_px=self.min_disparity_px * n,
         )
 
@@ -338,6 +344,11 @@ class VoOptions:
         if not 0.0 <= self.init_min_depth_fraction <= 1.0:
             raise EstimationError(
                 f"VoOptions.init_min_depth_fraction is {self.init_min_depth_fraction}; use a fraction in [0, 1]"
+            )
+        if self.depth_sigma_per_m2 < 0 or not self.track_sigma_px > 0:
+            raise EstimationError(
+                f"VoOptions.depth_sigma_per_m2={self.depth_sigma_per_m2}, track_sigma_px={self.track_sigma_px}; "
+                "use a depth noise >= 0 per m^2 (0: fixed weight; Kinect v1 1.425e-3) and a pixel noise > 0"
             )
         if not 0 < self.min_depth_m < self.max_depth_m:
             raise EstimationError(

@@ -124,6 +124,8 @@ class FileSequence:
         color: decode ``image`` as colour (``Frame.color_bgr`` plus ``gray``) or as gray only.
         depth_scale_m: metres per depth unit.
         depth_invalid: a raw depth value that means "no data" besides 0 (7-Scenes: 65535).
+        depth_registered: depth pixels are the colour pixels' (TUM); False when the depth camera
+            is another camera whose pixels are only mapped through the two pinhole models (7-Scenes).
         groundtruth: trajectory of the camera (already in the yielded camera's frame).
     """
 
@@ -139,6 +141,7 @@ class FileSequence:
         depth_intrinsics: CameraIntrinsics | None = None,
         depth_scale_m: float = 1.0,
         depth_invalid: int | None = None,
+        depth_registered: bool = True,
         baseline_m: float | None = None,
         rectification: StereoRectification | None = None,
         groundtruth: Trajectory | None = None,
@@ -150,6 +153,7 @@ class FileSequence:
         self.path = path
         self.intrinsics = intrinsics
         self.depth_intrinsics = depth_intrinsics
+        self.depth_registered = depth_registered
         self.baseline_m = baseline_m
         self.rectification = rectification
         self._files = files

@@ -97,5 +97,6 @@ def open_sevenscenes(path: Path, intrinsics: CameraIntrinsics | None = None) -> 
         depth_intrinsics=K,
         depth_scale_m=1e-3,
         depth_invalid=65535,
+        depth_registered=False,
         groundtruth=gt,
     )

@@ -10,6 +10,7 @@ import pytest
 
 from flightkit.datasets import open_sequence, read_kitti_poses, read_tum
 from flightkit.datasets.euroc import read_euroc_camera
+from flightkit.datasets.files import FileSequence
 from flightkit.errors import DatasetError
 from flightkit.frames import Transform
 
@@ -52,6 +53,7 @@ def test_sevenscenes_depth_in_mm_and_camera_to_world_poses(shared_data: Path) ->
         240,
     )
     assert seq.depth_intrinsics is not None
+    assert isinstance(seq, FileSequence) and not seq.depth_registered  # another camera: VO weighs its depth less
     frames = list(seq.frames(0, 10, 5))
     f0, f5 = frames
     assert f0.color_bgr is not None and f0.color_bgr.shape == (480, 640, 3)

@@ -540,3 +540,42 @@ def test_depth_lookup_rejects_holes_edges_borders_and_range() -> None:
     expected = [2.04, 2.0, np.nan, np.nan, np.nan, np.nan, np.nan, np.nan, np.nan, 3.0, np.nan]
     np.testing.assert_allclose(z, np.array(expected), rtol=1e-6)
     assert vo.geo.depth_at(depth, np.empty((0, 2), np.float32)).shape == (0,)
+
+
+def test_depth_weight_follows_the_sensor_noise_model() -> None:
+    """Registered depth images are weighed by the Kinect noise model (sigma_z = c z^2: a
+    disparity noise of fx b c at every depth, equal to the tracks' noise at b = sigma_px / (fx c));
+    another depth camera (7-Scenes), a zero noise coefficient and stereo keep their weights."""
+    from estimation.pipeline import VisualOdometry, VoOptions
+    from flightkit.datasets.base import CameraIntrinsics
+
+    intr = CameraIntrinsics(517.3, 516.5, 318.6, 255.3, 640, 480)
+    b = VisualOdometry("rgbd-kabsch", intr, depth_intrinsics=intr).geo.virtual_baseline_m
+    assert b == pytest.approx(0.5 / (517.3 * 1.425e-3))
+    unregistered = VisualOdometry("rgbd-kabsch", intr, depth_intrinsics=intr, depth_registered=False)
+    assert unregistered.geo.virtual_baseline_m == 0.1
+    fixed = VisualOdometry("rgbd-pnp", intr, depth_intrinsics=intr, options=VoOptions(depth_sigma_per_m2=0.0))
+    assert fixed.geo.virtual_baseline_m == 0.1
+    assert VisualOdometry("stereo", intr, baseline_m=0.3).geo.virtual_baseline_m == 0.3
+    with pytest.raises(EstimationError, match="track_sigma_px=0"):
+        VoOptions(track_sigma_px=0.0)
+
+
+def test_refine_pose_with_the_noise_model_weight_beats_the_fixed_one_on_kinect_like_depth() -> None:
+    """Pixels with 0.5 px noise and depth with sigma_z = 1.425e-3 z^2: the polish weighted by the
+    model (virtual baseline 0.5 / (f c)) finds the motion closer than with the old 0.1 m."""
+    from estimation.motion import refine_pose
+
+    rng = np.random.default_rng(5)
+    c, f = 1.425e-3, 500.0
+    X = scene(150, seed=3)
+    T = true_motion()
+    Xc = X @ T[:3, :3].T + T[:3, 3]
+    err: dict[float, list[float]] = {0.1: [], 0.5 / (f * c): []}
+    for _ in range(20):
+        px = project(T, X) + rng.normal(0, 0.5, (150, 2))
+        z = Xc[:, 2] + rng.normal(0, 1.0, 150) * c * Xc[:, 2] ** 2
+        for b, e in err.items():
+            T_est = refine_pose(T, X, px, K, f * b / z, f * b, huber_px=1e9)
+            e.append(float(abs(T_est[2, 3] - T[2, 3])))  # along the axis: what depth pins down
+    assert np.mean(err[0.5 / (f * c)]) < 0.8 * np.mean(err[0.1])
