@@ -180,20 +180,20 @@ def test_kitti06_native_stereo_against_the_plain_stereo_pipeline() -> None:
 
 
 def test_tum_rpy_native_rgbd_against_the_plain_rgbd_pipeline() -> None:
-    """Native 640x480, the fast-rotating handheld fr1/rpy, 60 frames, against plain-rgbd (ORB +
-    depth + PnP RANSAC) on the same frames. Measured 2026-11-26: plain ATE 27.6 mm, RPE 9.9 mm;
-    rgbd-essential ATE 35.5 mm, RPE 10.0 mm; rgbd-kabsch 45.6 and 9.5 mm; 140-160 vs 26 frames
-    per CPU second."""
+    """Native 640x480, the fast-rotating handheld fr1/rpy, 60 frames: rgbd-kabsch (the RGB-D pick)
+    against plain-rgbd (ORB + depth + PnP RANSAC) on the same frames. Measured 2026-11-26 with the
+    depth weighed by the Kinect noise model: ATE 25.5 vs 27.6 mm, RPE 6.4 vs 9.9 mm (0.64x),
+    200 vs 37 frames per CPU second (a loaded machine)."""
     seq = open_sequence(SHARED_DATA / "tum_fr1rpy_000_199")
     gt = seq.groundtruth()
     plain = run_plain(seq, "plain-rgbd", stop=60, init_from_groundtruth=True)
     ate_p, rpe_p = _ate_rpe(plain, gt)
-    runs = [run_vo(seq, m, stop=60, init_from_groundtruth=True) for m in ("rgbd-essential", "rgbd-kabsch")]
-    errs = [_ate_rpe(r, gt) for r in runs]
-    assert all(r.n_failed <= 1 for r in runs)
-    assert min(e[0] for e in errs) < 2.0 * ate_p
-    assert min(e[1] for e in errs) < 1.5 * rpe_p
-    assert min(r.fps_cpu for r in runs) > 2.0 * plain.fps_cpu
+    ours = run_vo(seq, "rgbd-kabsch", stop=60, init_from_groundtruth=True)
+    ate, rpe_m = _ate_rpe(ours, gt)
+    assert ours.n_failed == 0
+    assert ate < 1.3 * ate_p  # 0.92x measured; ATE over 60 frames moves +-20 % with any small change
+    assert rpe_m < 0.85 * rpe_p
+    assert ours.fps_cpu > 2.0 * plain.fps_cpu
 
 
 def test_orb_fallback_recovers_a_jump_that_tracking_cannot_follow() -> None:
