@@ -28,7 +28,7 @@ and max after 2 s < 30 mm, take-off and goto RMS < 30 mm (issue 19; docs/benchma
     .venv/bin/python bench/control.py            # full example plans (~5 min on 2 cores)
     .venv/bin/python bench/control.py --quick    # one lap each, faster sides (~2 min)
     .venv/bin/python bench/control.py --skip-timing --one-lap --autopilot ardupilot
-    .venv/bin/python bench/control.py --like-for-like    # part 3 only (~4 min)
+    .venv/bin/python bench/control.py --like-for-like    # part 3 only (~6 min at 5x on a quiet host)
 
 3. **Like for like** (``--like-for-like``): the simulated ArduPilot flown as the real ArduCopter run
    of issue 19 was (the runner of then: references up to the controller's limits, vertical limit
@@ -391,17 +391,19 @@ def runner_then(plan: Plan) -> Plan:
     )
 
 
-def like_for_like(speed: float, tmp: Path, plans: Sequence[str]) -> None:
+def like_for_like(speed: float, tmp: Path, plans: Sequence[str], one_lap: bool) -> None:
     """The real run's figures beside the simulated ArduPilot flown by that runner and today's, each on the
-    autopilot's own estimate republished at 100 Hz (as the real run's mocap was) and on the sim's truth."""
-    print(f"like for like with real ArduCopter (pymavlink, velocity setpoints, sim speed {speed:g}, one lap), mm")
+    autopilot's own estimate republished at 100 Hz (as the real run's mocap was) and on the sim's truth.
+    The example plans are flown as they are, as the real run flew them (``one_lap``: one lap, 1 s holds)."""
+    size = "one lap, 1 s holds" if one_lap else "the example plans as they are"
+    print(f"like for like with real ArduCopter (pymavlink, velocity setpoints, sim speed {speed:g}, {size}), mm")
     print(f"{'plan':<10} {'runner / mocap':<16} " + " ".join(f"{c:>12}" for c in LIKE_COLUMNS))
     for name in plans:
         real = REAL_ARDUCOPTER[name]
         cells = [f"{lo * 1e3:.0f}" if lo == hi else f"{lo * 1e3:.0f}-{hi * 1e3:.0f}" for lo, hi in real.values()]
         print(f"{name:<10} {'real ArduCopter':<16} " + " ".join(f"{c:>12}" for c in cells), flush=True)
         for runner in ("then", "today"):
-            plan = bench_plan(name, quick=False, one_lap=True)
+            plan = bench_plan(name, quick=False, one_lap=True) if one_lap else load_plan(EXAMPLES / f"{name}.toml")
             plan = runner_then(plan) if runner == "then" else plan
             for mocap, hz in (("estimate", 100.0), ("truth", 0.0)):
                 try:
@@ -445,7 +447,7 @@ def main() -> None:
     tmp = Path("/tmp/flightkit-bench-control")
     tmp.mkdir(exist_ok=True)
     if args.like_for_like:
-        like_for_like(args.speed, tmp, args.plans.split(","))
+        like_for_like(args.speed, tmp, args.plans.split(","), args.one_lap)
         return
 
     if not args.skip_timing:
