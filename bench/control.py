@@ -28,6 +28,12 @@ and max after 2 s < 30 mm, take-off and goto RMS < 30 mm (issue 19; docs/benchma
     .venv/bin/python bench/control.py            # full example plans (~5 min on 2 cores)
     .venv/bin/python bench/control.py --quick    # one lap each, faster sides (~2 min)
     .venv/bin/python bench/control.py --skip-timing --one-lap --autopilot ardupilot
+    .venv/bin/python bench/control.py --like-for-like    # part 3 only (~6 min at 5x on a quiet host)
+
+3. **Like for like** (``--like-for-like``): the simulated ArduPilot flown as the real ArduCopter run
+   of issue 19 was (the runner of then: references up to the controller's limits, vertical limit
+   0.3 m/s; mocap = the autopilot's own estimate republished at 100 Hz) and as today's runner and
+   the band test fly it (sim truth as mocap), each row beside the real figures (docs/sim.md).
 """
 
 from __future__ import annotations
@@ -56,6 +62,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # `bench._host` wh
 
 from bench._host import StealMeter  # noqa: E402
 from flightkit.apps.sim_session import fly_plan_in_sim  # noqa: E402
+from flightkit.errors import FlightkitError  # noqa: E402
 from flightkit.link.base import VelocitySetpoint  # noqa: E402
 from flightkit.link.mavlink import encode_velocity_setpoint  # noqa: E402
 from trajectories.controller import OutputFrame, SetpointKind  # noqa: E402
@@ -317,18 +324,22 @@ CONTROLLERS: dict[str, dict[str, Any]] = {
 }
 
 
-async def tracking_run(plan: Plan, controller: str, speed: float, autopilot: str, tmp: Path) -> dict[str, float]:
+async def tracking_run(
+    plan: Plan, controller: str, speed: float, autopilot: str, tmp: Path, mocap_from_autopilot_hz: float = 0.0
+) -> dict[str, Any]:
     """Fly ``plan`` with one of :data:`CONTROLLERS`; the phase figures (NaN when a fault ended it early)."""
     plan = plan.with_changes(controller=dataclasses.replace(plan.controller, **CONTROLLERS[controller]))
     log = tmp / f"{plan.name}-{autopilot}-{controller}-{time.time_ns()}.csv"
-    summary = await fly_plan_in_sim(plan, autopilot=autopilot, speed=speed, log_path=log)
-    nan = {k: math.nan for k in ("rms", "max", "max_after_2s", "takeoff_rms", "goto_rms")}
+    summary = await fly_plan_in_sim(
+        plan, autopilot=autopilot, speed=speed, log_path=log, mocap_from_autopilot_hz=mocap_from_autopilot_hz
+    )
+    nan = {k: math.nan for k in ("rms", "max", "max_after_2s", "takeoff_rms", "goto_rms", "land_rms")}
     try:
         pat = summary.phase("pattern")
     except KeyError:  # a fault ended the flight before the pattern: say so, do not crash the table
         faults = ", ".join(f.kind.value for f in summary.faults)
         print(f"  {plan.name} ({controller}): {summary.outcome} before the pattern ({faults})")
-        return {**nan, "outcome": False, "faults": 1}
+        return {**nan, "outcome": False, "faults": 1, "fault_kinds": faults}
     data = read_flight_log(log)
     sel = (data["phase"] == "pattern") & (data["action"] == "CONTINUE")
     err = data["err_m"][sel]
@@ -340,10 +351,68 @@ async def tracking_run(plan: Plan, controller: str, speed: float, autopilot: str
         "max": pat.max_error_m,
         "max_after_2s": float(np.max(late)) if len(late) else math.nan,
         "takeoff_rms": summary.phase("takeoff").rms_error_m,
+        "takeoff_max": summary.phase("takeoff").max_error_m,
         "goto_rms": summary.phase("goto").rms_error_m,
+        "goto_max": summary.phase("goto").max_error_m,
+        "land_rms": summary.phase("land").rms_error_m if "land" in [p.name for p in summary.phases] else math.nan,
         "outcome": summary.outcome == "completed",
         "faults": len(summary.faults),
+        "fault_kinds": ", ".join(sorted({f.kind.value for f in summary.faults})),
     }
+
+
+# ------------------------------------------------------------- part 3: like for like with the real run
+
+# Real ArduCopter 4.7.0-dev SITL flown by the runner as it was then (issue 19, ../shared/FACTS.md):
+# per plan, (low, high) of each figure in metres; the take-off, goto and landing ranges span the plans.
+REAL_ARDUCOPTER: dict[str, dict[str, tuple[float, float]]] = {
+    name: {
+        "takeoff_rms": (0.060, 0.070),
+        "takeoff_max": (0.109, 0.131),
+        "goto_rms": (0.066, 0.069),
+        "goto_max": (0.111, 0.125),
+        "rms": (pat_rms, pat_rms),
+        "max_after_2s": (pat_max, pat_max),
+        "land_rms": (0.051, 0.052),
+    }
+    for name, pat_rms, pat_max in (("circle", 0.015, 0.023), ("rectangle", 0.014, 0.045), ("lawnmower", 0.013, 0.046))
+}
+# The runner of the real run: its take-off, transit and landing references ran up to the controller's
+# limits, the vertical one 0.3 m/s (today: 80 % of 0.4 m/s).
+RUNNER_THEN = {"reference_headroom": 1.0, "max_vertical_m_s": 0.3}
+LIKE_COLUMNS = ("takeoff_rms", "takeoff_max", "goto_rms", "goto_max", "rms", "max_after_2s", "land_rms")
+
+
+def runner_then(plan: Plan) -> Plan:
+    """``plan`` flown as the real run's runner flew it (:data:`RUNNER_THEN`)."""
+    return plan.with_changes(
+        settings=dataclasses.replace(plan.settings, reference_headroom=RUNNER_THEN["reference_headroom"]),
+        controller=dataclasses.replace(plan.controller, max_vertical_m_s=RUNNER_THEN["max_vertical_m_s"]),
+    )
+
+
+def like_for_like(speed: float, tmp: Path, plans: Sequence[str], one_lap: bool) -> None:
+    """The real run's figures beside the simulated ArduPilot flown by that runner and today's, each on the
+    autopilot's own estimate republished at 100 Hz (as the real run's mocap was) and on the sim's truth.
+    The example plans are flown as they are, as the real run flew them (``one_lap``: one lap, 1 s holds)."""
+    size = "one lap, 1 s holds" if one_lap else "the example plans as they are"
+    print(f"like for like with real ArduCopter (pymavlink, velocity setpoints, sim speed {speed:g}, {size}), mm")
+    print(f"{'plan':<10} {'runner / mocap':<16} " + " ".join(f"{c:>12}" for c in LIKE_COLUMNS))
+    for name in plans:
+        real = REAL_ARDUCOPTER[name]
+        cells = [f"{lo * 1e3:.0f}" if lo == hi else f"{lo * 1e3:.0f}-{hi * 1e3:.0f}" for lo, hi in real.values()]
+        print(f"{name:<10} {'real ArduCopter':<16} " + " ".join(f"{c:>12}" for c in cells), flush=True)
+        for runner in ("then", "today"):
+            plan = bench_plan(name, quick=False, one_lap=True) if one_lap else load_plan(EXAMPLES / f"{name}.toml")
+            plan = runner_then(plan) if runner == "then" else plan
+            for mocap, hz in (("estimate", 100.0), ("truth", 0.0)):
+                try:
+                    r = asyncio.run(tracking_run(plan, "velocity", speed, "ardupilot", tmp, mocap_from_autopilot_hz=hz))
+                except FlightkitError as exc:  # a host stall can cost a command its ACK: say so, go on
+                    r = {"outcome": False, "faults": 1, "error": str(exc)}
+                row = " ".join(f"{r.get(c, math.nan) * 1e3:>12.0f}" for c in LIKE_COLUMNS)
+                note = "" if r["outcome"] else f"  (did not complete: {r.get('error', r.get('fault_kinds', ''))})"
+                print(f"{'':<10} {runner + ' / ' + mocap:<16} {row}{note}", flush=True)
 
 
 def main() -> None:
@@ -363,6 +432,12 @@ def main() -> None:
     ap.add_argument("--autopilot", default="px4", choices=["px4", "ardupilot"])
     ap.add_argument("--skip-timing", action="store_true")
     ap.add_argument("--skip-tracking", action="store_true")
+    ap.add_argument(
+        "--like-for-like",
+        action="store_true",
+        help="only the ArduPilot flights beside the real run's figures: then/today's runner x estimate/truth mocap",
+    )
+    ap.add_argument("--plans", default="circle,rectangle,lawnmower", help="plans for --like-for-like")
     ap.add_argument("--role", choices=("main", "sniffer"), default="main", help=argparse.SUPPRESS)
     ap.add_argument("--target", type=int, help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -371,6 +446,9 @@ def main() -> None:
     logging.basicConfig(level=logging.ERROR)
     tmp = Path("/tmp/flightkit-bench-control")
     tmp.mkdir(exist_ok=True)
+    if args.like_for_like:
+        like_for_like(args.speed, tmp, args.plans.split(","), args.one_lap)
+        return
 
     if not args.skip_timing:
         print("timing (wall time; simulator and sniffer in their own processes; PX4 personality, pymavlink, hover)")

@@ -73,6 +73,11 @@ class PlanSettings:
         0.3, min=0.05, max=3.0, help="speed of the move to the pattern's start"
     )
     accel_m_s2: float = setting(0.5, min=0.05, max=10.0, help="acceleration of take-off, transit and landing")
+    reference_headroom: float = setting(
+        0.8, min=0.5, max=1.0,
+        help="take-off, transit and landing move at most this share of the controller's speed limits "
+        "(1: up to the limits)",
+    )
     rate_hz: float = setting(100.0, min=5.0, max=500.0, help="control loop rate")
     arm_timeout_s: float = setting(60.0, min=1.0, max=3600.0, help="how long to wait for the pilot to arm")
     preflight_timeout_s: float = setting(5.0, min=0.1, max=120.0, help="how long to wait for mocap at start")

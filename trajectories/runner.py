@@ -48,9 +48,6 @@ __all__ = ["FlightRunner", "pattern_in_fence", "with_laps"]
 
 logger = logging.getLogger(__name__)
 
-REFERENCE_HEADROOM = 0.8
-"""Take-off, transit and landing references move at most this fraction of the controller's speed
-limits, so the position feedback keeps authority to correct the lag (docs/flying.md)."""
 LIFT_SETTLED_M_S = 0.1
 """With position targets, the autopilot's own lift counts as over below this climb rate (m/s)."""
 
@@ -432,9 +429,9 @@ class FlightRunner:
         self._remember(pat)
 
     def _vertical_rate(self, rate_m_s: float, name: str) -> float:
-        """``rate_m_s`` capped at :data:`REFERENCE_HEADROOM` of the vertical speed limit (warned once)."""
+        """``rate_m_s`` capped at ``[plan] reference_headroom`` of the vertical speed limit (warned once)."""
         limit = self.loop.controller.config.max_vertical_m_s
-        cap = REFERENCE_HEADROOM * limit
+        cap = self.settings.reference_headroom * limit
         if rate_m_s <= cap:
             return rate_m_s
         if name not in self._headroom_warned:
@@ -448,16 +445,16 @@ class FlightRunner:
 
     def _transit_speed(self, start: Vec3Tuple, end: Vec3Tuple, speed_m_s: float) -> float:
         """The speed along a straight transit that keeps both its horizontal and vertical parts
-        within :data:`REFERENCE_HEADROOM` of the controller's limits."""
+        within ``[plan] reference_headroom`` of the controller's limits."""
         c = self.loop.controller.config
         dist = math.dist(start, end)
         horizontal = math.hypot(end[0] - start[0], end[1] - start[1]) / dist
         vertical = abs(end[2] - start[2]) / dist
         cap = math.inf
         if horizontal > 0.0:
-            cap = REFERENCE_HEADROOM * c.max_horizontal_m_s / horizontal
+            cap = self.settings.reference_headroom * c.max_horizontal_m_s / horizontal
         if vertical > 0.0:
-            cap = min(cap, REFERENCE_HEADROOM * c.max_vertical_m_s / vertical)
+            cap = min(cap, self.settings.reference_headroom * c.max_vertical_m_s / vertical)
         return min(speed_m_s, cap)
 
     def _remember(self, pattern: Pattern) -> None:

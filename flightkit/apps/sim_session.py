@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING, Any
 from flightkit.clock import ONE_PROCESS_WALL_STEP_S, Clock, SimClock
 from flightkit.config import Autopilot, LabConfig, LinkBackend
 from flightkit.link.base import VehicleLink
+from flightkit.mocap.base import MocapSource
 from flightkit.sim.lab import SimLab
 from flightkit.sim.mocap import SimMocapSource
 from trajectories.control_loop import Status
@@ -156,12 +157,16 @@ async def fly_plan_in_sim(
     on_status: Callable[[Status], None] | None = None,
     handle_signals: bool = False,
     on_session: Callable[[SimSession], None] | None = None,
+    mocap_from_autopilot_hz: float = 0.0,
 ) -> FlightSummary:
     """Fly ``plan`` against an in-process simulated lab; blocks until the flight ends.
 
     Args:
         arm: arm from the script (default True: there is no pilot in the simulator).
         on_session: called with the session once connected (fault injection, watching).
+        mocap_from_autopilot_hz: fly on the autopilot's own estimate (its position and attitude
+            telemetry) republished at this rate, as a lab that puts the autopilot's EKF on the bus
+            as mocap; 0 (default): on the simulated mocap.
         The rest as :func:`sim_session` and :func:`trajectories.fly.fly_plan`.
 
     Returns:
@@ -170,17 +175,26 @@ async def fly_plan_in_sim(
     async with sim_session(lab_cfg, autopilot=autopilot, backend=backend, speed=speed) as s:
         if on_session is not None:
             on_session(s)
-        return await fly_plan(
-            plan,
-            s.config,
-            link=s.link,
-            mocap=s.mocap,
-            clock=s.clock,
-            arm=arm,
-            log_path=log_path,
-            on_status=on_status,
-            handle_signals=handle_signals,
-        )
+        async with contextlib.AsyncExitStack() as stack:
+            mocap: MocapSource = s.mocap
+            if mocap_from_autopilot_hz > 0.0:
+                from flightkit.mocap.telemetry_source import TelemetryPoseSource
+
+                estimate = TelemetryPoseSource(
+                    s.link, s.clock, s.config.mocap.body, rate_hz=mocap_from_autopilot_hz, repeat=True
+                )
+                mocap = await stack.enter_async_context(estimate)
+            return await fly_plan(
+                plan,
+                s.config,
+                link=s.link,
+                mocap=mocap,
+                clock=s.clock,
+                arm=arm,
+                log_path=log_path,
+                on_status=on_status,
+                handle_signals=handle_signals,
+            )
     raise AssertionError("unreachable")  # pragma: no cover
 
 

@@ -17,12 +17,18 @@ Timing: the source polls ``link.telemetry`` at ``rate_hz`` of clock time and han
 whenever the telemetry snapshot has changed. ``received_s`` is the clock time of the newest
 telemetry message (``Telemetry.stamp_s``), so a silent link shows as stale mocap to the
 supervisor; ``stamp_ns`` is the clock's ``time_ns`` when the snapshot was read.
+
+With ``repeat=True`` it hands out the latest snapshot at every poll instead, stamped and
+received at the poll: what a bridge republishing the autopilot's estimate on the bus at a fixed
+rate delivers (a zero-order hold of the telemetry, as old as the telemetry rate and the link
+make it, that looks fresh). A dead link still shows: its poses turn invalid with the heartbeat.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import logging
 import math
 
@@ -78,6 +84,7 @@ class TelemetryPoseSource(WorldFrameSource):
         T_world_local: the autopilot's local frame in the world (identity when it fuses a
             world-frame vision pose with yaw).
         max_heartbeat_age_s: poses are flagged invalid when the heartbeat is older.
+        repeat: hand out the latest estimate at every poll, stamped then (a fixed-rate bridge).
 
     Use as ``async with source:`` from the event loop the link runs on.
     """
@@ -91,6 +98,7 @@ class TelemetryPoseSource(WorldFrameSource):
         rate_hz: float = 50.0,
         T_world_local: Transform | None = None,  # noqa: N803
         max_heartbeat_age_s: float = 2.0,
+        repeat: bool = False,
     ) -> None:
         if not (math.isfinite(rate_hz) and 1.0 <= rate_hz <= 1000.0):
             raise MocapError(f"telemetry pose rate {rate_hz!r} Hz is outside 1-1000 Hz; pick e.g. 50")
@@ -100,6 +108,7 @@ class TelemetryPoseSource(WorldFrameSource):
         self.body = body
         self.rate_hz = float(rate_hz)
         self.max_heartbeat_age_s = float(max_heartbeat_age_s)
+        self.repeat = repeat
         self._last_key: tuple[object, ...] | None = None
         self._seq = 0
         self._task: asyncio.Task[None] | None = None
@@ -116,11 +125,12 @@ class TelemetryPoseSource(WorldFrameSource):
                 await task
 
     def poll(self) -> MocapPose | None:
-        """Read the telemetry once; returns the new pose if the snapshot changed (also hands it
-        to :meth:`poses` consumers), else None. The polling task calls this at ``rate_hz``."""
+        """Read the telemetry once; returns the new pose if the snapshot changed (always with
+        ``repeat``; also hands it to :meth:`poses` consumers), else None. The polling task calls
+        this at ``rate_hz``."""
         tel = self.link.telemetry
         key = (tel.stamp_s, tel.pos_local_enu_m, tel.R_local_body_quat_wxyz)
-        if key == self._last_key:
+        if key == self._last_key and not self.repeat:
             return None
         self._last_key = key
         sample = pose_from_telemetry(
@@ -129,6 +139,8 @@ class TelemetryPoseSource(WorldFrameSource):
         )
         if sample is None:
             return None
+        if self.repeat:
+            sample = dataclasses.replace(sample, received_s=self.clock.monotonic_s())
         self._seq += 1
         self.poses_published += 1
         return self._ingest(sample)

@@ -74,30 +74,35 @@ def liftoff_s_and_top_m(log_path: str) -> tuple[float, float]:
 
 
 def assert_like_arducopter(summary: FlightSummary, with_pattern: bool) -> None:
-    """The flight's figures within bands around the real ArduCopter's (issue 19's table).
+    """The flight's figures within bands that compare like with like (issue 19; docs/sim.md).
 
-    Bands are the real range widened by 30 % (the issue's target) where the simulator meets it
-    (lift-off time and top, take-off and goto max). The circle's RMS and max after 2 s are allowed
-    up to 32 and 60 mm (real 15 and 23 mm; the sim's hand-over from the goto rings longer, see
-    docs/sim.md "Fidelity"). Where it tracks tighter than the
-    firmware (docs/sim.md, "Fidelity"), the band runs from the firmware's figure + 30 % down to a
-    floor the old lag-free simulator stayed below: the take-off RMS (sim 22-65 mm, real 60-70; the
-    firmware's steady 9 cm lead on the climb is not modelled), the goto RMS on a loaded host
-    (sim 37-61 mm, real 66-69) and the landing (sim 15-25 mm, real 51-52).
+    The real ArduCopter figures came from the runner of then (climb and descent at its 0.3 m/s
+    vertical limit) flying the full example plans on the firmware's own EKF pose as mocap. Flown
+    that way the simulated ArduPilot reproduces lift-off, top, take-off max, goto and landing
+    (``bench/control.py --like-for-like``). This test flies today's runner (climb and descent with
+    20 % headroom below 0.4 m/s) on the sim's truth for one lap: where today's runner flies
+    differently, the band is the sim's own figure for it (the landing: 16-23 mm, against 43-52 mm
+    like for like and 51-52 real). Not matched like for like, so held to bands around the real
+    figures as before: the take-off RMS (sim 26-42 mm, real 60-70) and the circle's max after
+    2 s (sim 29-36, real 23). The circle's RMS matches over the real run's two laps (14-19 mm
+    against 15); one lap, as here, gives 18-25.
     """
     table = summary.format_table()
     liftoff_s, top_m = liftoff_s_and_top_m(summary.log_path or "")
     assert 2.0 <= liftoff_s <= 3.6, (liftoff_s, table)  # real 2.8 s
     assert 0.29 <= top_m <= 0.53, (top_m, table)  # real 0.41 m
     takeoff, goto, land = summary.phase("takeoff"), summary.phase("goto"), summary.phase("land")
-    assert 0.018 <= takeoff.rms_error_m <= 0.091, table  # real 60-70 mm; lag-free sim 12-17
+    assert 0.018 <= takeoff.rms_error_m <= 0.091, table  # real 60-70 mm, sim 23-55; lag-free sim 12-17
     assert 0.076 <= takeoff.max_error_m <= 0.17, table  # real 109-131 mm; lag-free sim 33-40
     assert 0.032 <= goto.rms_error_m <= 0.090, table  # real 66-69 mm; lag-free sim 27-28
     assert 0.078 <= goto.max_error_m <= 0.163, table  # real 111-125 mm; lag-free sim 50-52
-    assert 0.008 <= land.rms_error_m <= 0.068, table  # real 51-52 mm
+    # today's runner lands with headroom: 16-23 mm, +30 % and a loaded host's margin (the runner of then,
+    # like for like: 43-52 mm; real 51-52)
+    assert 0.008 <= land.rms_error_m <= 0.045, table
     if with_pattern:
         pat = summary.phase("pattern")
-        # real 15 mm; the sim 18-26 mm: its steady lag is 12 mm, the hand-over from the goto adds the rest
+        # one lap 18-25 mm (the hand-over from the goto weighs twice what it does in the real run's
+        # two laps: 14-19 mm like for like, real 15); the steady lag is 12 mm
         assert 0.009 <= pat.rms_error_m <= 0.032, table
         r = pattern_rows(summary.log_path or "")
         late = r["err_m"][settled(r["t_s"]) & (r["t_s"] > r["t_s"][0] + 2.0)]

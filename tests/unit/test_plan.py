@@ -104,3 +104,11 @@ def test_a_safety_key_set_from_the_command_line_survives_the_labs_safety_table(t
     merged = plan.with_safety(allow_hover_on_companion_loss=True).with_lab_defaults(lab)
     assert merged.safety.allow_hover_on_companion_loss
     assert merged.safety.max_speed_m_s == 1.5  # the lab's other keys still apply
+
+
+def test_reference_headroom_is_a_plan_setting_within_its_bounds() -> None:
+    plan = parse_plan({"plan": {"reference_headroom": 1.0}, "pattern": {"kind": "circle", "period_s": 20.0}})
+    assert plan.settings.reference_headroom == 1.0
+    assert parse_plan({"pattern": {"kind": "circle", "period_s": 20.0}}).settings.reference_headroom == 0.8
+    with pytest.raises(ConfigError, match="reference_headroom"):
+        parse_plan({"plan": {"reference_headroom": 0.3}, "pattern": {"kind": "circle", "period_s": 20.0}})

@@ -107,3 +107,22 @@ def test_poll_hands_out_only_new_snapshots() -> None:
 def test_rate_is_checked() -> None:
     with pytest.raises(MocapError, match="outside 1-1000 Hz"):
         TelemetryPoseSource(_TelemetryHolder(Telemetry()), LockstepClock(), "u", rate_hz=0.0)  # type: ignore[arg-type]
+
+
+def test_repeat_republishes_the_last_snapshot_stamped_at_each_poll() -> None:
+    # a bridge republishing the estimate at a fixed rate: every poll hands out a pose, the
+    # unchanged ones with the old position, stamped and received at the poll
+    clock = LockstepClock()
+    holder = _TelemetryHolder(tel((0.5, 0.0, 1.0), Rotation.identity(), stamp_s=clock.monotonic_s()))
+    src = TelemetryPoseSource(holder, clock, "uav1", repeat=True)  # type: ignore[arg-type]
+    first = src.poll()
+    clock.advance(0.01)
+    held = src.poll()
+    assert first is not None and held is not None
+    assert held.seq == first.seq + 1 and held.stamp_ns == first.stamp_ns + 10_000_000
+    assert held.received_s == pytest.approx(clock.monotonic_s())
+    np.testing.assert_allclose(held.T_world_body.translation, first.T_world_body.translation)
+    holder.telemetry = tel((0.6, 0.0, 1.0), Rotation.identity(), stamp_s=clock.monotonic_s())
+    clock.advance(0.01)
+    moved = src.poll()
+    assert moved is not None and moved.T_world_body.translation[0] == pytest.approx(0.6)
