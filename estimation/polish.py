@@ -173,4 +173,5 @@ class PosePolisher:
         good = np.isfinite(d)
         X_meas = geo.backproject(und[good], fb / d[good])
         self.meas = (np.flatnonzero(good), X_meas)
-        return refine_pose(T, X_kf, und, geo.K, d, fb, huber_px=1.0)
+        tw = geo.translation_weight(X_kf @ T[2, :3] + T[2, 3]) if self.stereo else None
+        return refine_pose(T, X_kf, und, geo.K, d, fb, huber_px=1.0, translation_weight=tw)

@@ -231,6 +231,8 @@ class VoOptions:
             depth image is in range (0: start at once).
         max_depth_baselines: stereo points farther than this many baselines are not used (inf: all kept).
         min_disparity_px: stereo points with a smaller disparity are not used, px (the matching noise floor).
+        far_points: stereo points beyond the depth cap or minimum disparity: ``"drop"`` them, keep them
+            for the ``"rotation"`` only, or keep them with a say in the translation ``"weighted"`` by cap / depth.
         refine_with_depth: polish poses on the current frame's depth too (``motion.refine_pose``).
         fuse_depth: fuse each frame's depth of tracked points into their 3D estimates.
         stereo_fb_check: also check left-right stereo matches right-to-left.
@@ -264,6 +266,7 @@ class VoOptions:
     init_min_depth_fraction: float = 0.0
     min_disparity_px: float = 3.0
     max_depth_baselines: float = 60.0
+    far_points: str = "drop"
     refine_with_depth: bool = True
     fuse_depth: bool = True
     stereo_fb_check: bool = False
@@ -317,6 +320,8 @@ class VoOptions:
     def __post_init__(self) -> None:
         if self.pnp_method not in ("iterative", "epnp", "sqpnp"):
             raise EstimationError(f"VoOptions.pnp_method is {self.pnp_method!r}; use iterative, epnp or sqpnp")
+        if self.far_points not in ("drop", "rotation", "weighted"):
+            raise EstimationError(f"VoOptions.far_points is {self.far_points!r}; use 'drop', 'rotation' or 'weighted'")
         if self.pnp_kernel not in (None, "p3p", "ap3p"):
             raise EstimationError(f"VoOptions.pnp_kernel is {self.pnp_kernel!r}; use 'ap3p', 'p3p' or None")
         if self.max_features < 20:
