@@ -64,14 +64,15 @@ from flightkit.datasets.registry import open_sequence  # noqa: E402
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 RGBD = ["rgbd-pnp", "rgbd-essential", "rgbd-kabsch", "flow"]
+STEREO = ["stereo", "stereo@far", "stereo@offset"]
 SEQUENCES: dict[str, tuple[str, list[str], str]] = {
     # key: (folder, flightkit methods, plain baseline)
-    "kitti06": ("kitti06_stereo", ["stereo", "stereo@offset", "flow"], "plain-stereo"),
+    "kitti06": ("kitti06_stereo", STEREO + ["stereo@far+offset", "flow"], "plain-stereo"),
     "tum_rpy": ("tum_fr1rpy_000_199", RGBD, "plain-rgbd"),
     "7scenes": ("sevenscenes_tsdf50", RGBD, "plain-rgbd"),
     "tum_case1": ("tum_fr1xyz_pairs/case_1", RGBD, "plain-rgbd"),
     "tum_case2": ("tum_fr1xyz_pairs/case_2", RGBD, "plain-rgbd"),
-    "euroc_static": ("euroc_v101_static", ["stereo", "stereo@offset", "flow@stereo"], "plain-stereo"),
+    "euroc_static": ("euroc_v101_static", STEREO + ["flow@stereo"], "plain-stereo"),
 }
 
 
@@ -79,6 +80,8 @@ VARIANTS: dict[str, VoOptions] = {
     "": VoOptions(),
     "stereo": VoOptions(estimator=FlowOptions(depth="stereo")),  # flow with per-point stereo depth
     "offset": VoOptions(stereo_offset=True),  # stereo with the disparity offset estimated online
+    "far": VoOptions(far_points="weighted"),  # stereo keeping the points beyond the depth cap, mostly for the rotation
+    "far+offset": VoOptions(far_points="weighted", stereo_offset=True),
 }
 """Row-name suffixes (``method@variant``) and their options."""
 

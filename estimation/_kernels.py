@@ -134,6 +134,7 @@ def pose_gauss_newton(
     T0: Any,
     uv: Any,
     disp: Any,
+    tw: Any,
     fx: float,
     fy: float,
     cx: float,
@@ -152,7 +153,9 @@ def pose_gauss_newton(
     weights (:func:`_huber_weight`); the weighted normal equations summed point by point,
     the 6x6 solve (:func:`_solve6`), the left update ``T <- exp(xi) T`` (Rodrigues'
     rotation, translation ``xi[:3]``); stops when ``xi . xi < stop``, or before a step when a
-    point is at or behind ``z = 1e-6`` or the system is singular. ``dof`` is 6 (an argument,
+    point is at or behind ``z = 1e-6`` or the system is singular. ``tw[i]`` scales point ``i``'s
+    translation columns and its disparity row (1: full say; 0: the point informs the rotation
+    only). ``dof`` is 6 (an argument,
     so that LLVM does not unroll the loops). Returns the refined (4, 4) pose (a copy of ``T0``
     when no step was taken).
 
@@ -183,18 +186,19 @@ def pose_gauss_newton(
             iz = 1.0 / z
             xz = x * iz
             yz = y * iz
+            c = tw[i]
             ru = fx * xz + cx - uv[i, 0]
             t1 = -fx * xz
-            u0 = fx * iz
-            u2 = t1 * iz
+            u0 = c * (fx * iz)
+            u2 = c * (t1 * iz)
             u3 = t1 * yz
             u4 = fx * (xz * xz + 1.0)
             u5 = -fx * yz
             w = _huber_weight(ru, huber)
             wu0, wu2, wu3, wu4, wu5 = w * u0, w * u2, w * u3, w * u4, w * u5
             rv = fy * yz + cy - uv[i, 1]
-            v1 = fy * iz
-            v2 = (-fy * yz) * iz
+            v1 = c * (fy * iz)
+            v2 = c * ((-fy * yz) * iz)
             v3 = -fy * (yz * yz + 1.0)
             v4 = (fy * xz) * yz
             v5 = fy * xz
@@ -204,9 +208,9 @@ def pose_gauss_newton(
             if dm == dm:
                 kz = fb * iz * iz
                 rd = fb * iz - dm
-                d2 = -kz
-                d3 = -kz * y
-                d4 = kz * x
+                d2 = -kz * c
+                d3 = -kz * y * c
+                d4 = kz * x * c
                 w = _huber_weight(rd, huber)
                 wd2, wd3, wd4 = w * d2, w * d3, w * d4
             else:

@@ -144,6 +144,7 @@ class CameraGeometry:
             return X, ok
         if right is None or left is None or self.rig is None:
             raise EstimationError("this VO method needs depth or a stereo pair in every frame")
+        keep_far = self.opts.far_points != "drop"
         disp, ok = sparse_disparity(
             left,
             right,
@@ -152,9 +153,11 @@ class CameraGeometry:
             fb_max_px=self.opts.fb_max_px if self.opts.stereo_fb_check else None,
             win_px=self.stereo_win,
             levels=self.klt_levels,
-            min_disparity_px=self.opts.min_disparity_px,
+            min_disparity_px=_FAR_MIN_DISPARITY_PX if keep_far else self.opts.min_disparity_px,
         )
         zmax = self.max_stereo_depth_m() if max_depth_m is None else max_depth_m
+        if keep_far:
+            zmax = max(zmax, self.rig.fx * self.rig.baseline_m / _FAR_MIN_DISPARITY_PX)
         X, ok2 = triangulate(px, disp + np.float32(self.disparity_offset_px), self.rig, self.opts.min_depth_m, zmax)
         return X, ok & ok2
 
@@ -162,6 +165,28 @@ class CameraGeometry:
         """The farthest stereo depth used, m."""
         b = self.rig.baseline_m if self.rig is not None else 0.0
         return min(self.opts.max_depth_m, self.opts.max_depth_baselines * b) if b > 0 else self.opts.max_depth_m
+
+    def near_depth_m(self) -> float:
+        """The farthest stereo depth with a full say in the translation, m (the depth cap and the
+        minimum disparity; infinite without a stereo rig)."""
+        if self.rig is None:
+            return math.inf
+        d_min = self.opts.min_disparity_px
+        z_disp = self.rig.fx * self.rig.baseline_m / d_min if d_min > 0 else math.inf
+        return min(self.max_stereo_depth_m(), z_disp)
+
+    def translation_weight(self, z: F64) -> F64 | None:
+        """Each stereo point's factor on its say in the translation (``VoOptions.far_points``): 1 up
+        to :meth:`near_depth_m`, beyond it 0 (``"rotation"``) or near depth / z (``"weighted"``);
+        None when every point has a full say."""
+        mode = self.opts.far_points
+        if mode == "drop" or self.rig is None:
+            return None
+        z_near = self.near_depth_m()
+        if mode == "rotation":
+            return np.where(z <= z_near, 1.0, 0.0)
+        w: F64 = np.minimum(1.0, z_near / np.maximum(z, 1e-9))
+        return w
 
     def reproj_err2(self, T_cur_ref: F64, X_ref: F64, und_cur: F64) -> F64:
         """Squared reprojection error (px^2) of reference points in the current (undistorted)
@@ -214,6 +239,10 @@ def depth_weight_baseline_m(fx_px: float, registered: bool, options: VoOptions) 
     if not registered or options.depth_sigma_per_m2 <= 0:
         return UNREGISTERED_DEPTH_BASELINE_M
     return options.track_sigma_px / (fx_px * options.depth_sigma_per_m2)
+
+
+_FAR_MIN_DISPARITY_PX = 0.5
+"""With far points kept: the smallest disparity accepted, px."""
 
 
 def depth_weight(z: F64) -> F64:

@@ -493,6 +493,7 @@ def refine_pose(
     fb_px_m: float = 0.0,
     huber_px: float = 1.0,
     iterations: int = 4,
+    translation_weight: npt.ArrayLike | None = None,
 ) -> F64:
     """Gauss-Newton polish of a pose on reprojection and (optionally) disparity residuals.
 
@@ -512,6 +513,8 @@ def refine_pose(
         fb_px_m: ``fx * baseline`` of the disparities (pixel metres).
         huber_px: Huber threshold of all residuals (> 0; a huge one is plain least squares).
         iterations: Gauss-Newton steps (stops early on convergence).
+        translation_weight: (N,) factor in [0, 1] on each point's say in the translation (and on
+            its disparity row): 0 lets a point fix the rotation only; None: 1 for every point.
 
     Returns:
         The refined (4, 4) pose: a new array (``T_cur_ref`` itself with fewer than 4 points).
@@ -527,10 +530,17 @@ def refine_pose(
         disp = np.full(n, np.nan)
     else:
         disp = np.ascontiguousarray(disparity_px, dtype=np.float64).reshape(-1)
+    tw = (
+        np.ones(n)
+        if translation_weight is None
+        else np.ascontiguousarray(translation_weight, dtype=np.float64).reshape(-1)
+    )
     if len(uv) != n or len(disp) != n:
         raise EstimationError(
             f"refine_pose got {n} points, {len(uv)} pixels and {len(disp)} disparities; give one of each per point"
         )
+    if len(tw) != n:
+        raise EstimationError(f"refine_pose got {n} points and {len(tw)} translation weights; give one per point")
     if n < 4:
         return T_cur_ref
     # The start's rotation projected onto SO(3) (OpenCV's Rodrigues takes the nearest
@@ -547,6 +557,7 @@ def refine_pose(
         T0,
         uv,
         disp,
+        tw,
         fx,
         fy,
         cx,

@@ -183,7 +183,9 @@ class VisualOdometry:
             self._estimator = keyframe_estimator(self.method, self.geo, self.polisher, o, self.path_counts, self.rng)
         rig = self.geo.rig
         self.offset = (
-            DisparityOffset(rig.fx, rig.fy, rig.cx, rig.cy, rig.baseline_m)
+            DisparityOffset(
+                rig.fx, rig.fy, rig.cx, rig.cy, rig.baseline_m, min_parallax_px=o.stereo_offset_parallax_px
+            )
             if stereo and rig is not None and o.stereo_offset
             else None
         )
@@ -385,10 +387,11 @@ class VisualOdometry:
             keep = ok
         front.keep(keep, px)
         parallax = np.linalg.norm(front.trk_px - front.kf_px, axis=1) if len(front.trk_px) else np.zeros(1)
-        depth = median(front.kf_X[:, 2]) if len(front.kf_X) else float("inf")
-        decision = o.keyframes.decide(
-            parallax, len(front.trk_px), front.kf_n0, T_cur_kf, self.kf_since, depth
-        )
+        z_kf = front.kf_X[:, 2]
+        if self.method is Method.STEREO and o.far_points != "drop":
+            z_kf = np.minimum(z_kf, self.geo.near_depth_m())  # the baseline rule: the depth of the near points
+        depth = median(z_kf) if len(z_kf) else float("inf")
+        decision = o.keyframes.decide(parallax, len(front.trk_px), front.kf_n0, T_cur_kf, self.kf_since, depth)
         is_kf = decision.new_keyframe or fallback
         if is_kf:
             X_cur = front.kf_X @ T_cur_kf[:3, :3].T + T_cur_kf[:3, 3]

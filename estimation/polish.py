@@ -8,6 +8,8 @@ tracks, their 3D points in the current camera) for the front end to fuse.
 
 from __future__ import annotations
 
+from typing import Any
+
 import cv2
 import numpy as np
 import numpy.typing as npt
@@ -150,19 +152,24 @@ class PosePolisher:
             off = np.float32(geo.disparity_offset_px)
             z_pred = X_kf @ T[2, :3] + T[2, 3]
             init = (fb / np.maximum(z_pred, 1e-3)).astype(np.float32) - off
+            # Only points whose measurement could pass both checks below (far points kept for the
+            # rotation predict less than the minimum disparity: no LK for them).
+            d_min = self.opts.min_disparity_px
+            sel = np.flatnonzero(init > min(d_min - 2.0, d_min / 1.3))
             disp, ok = sparse_disparity(
                 gray,
                 right_gray,
-                px,
-                init,
+                np.ascontiguousarray(px[sel]),
+                init[sel],
                 fb_max_px=None,
                 win_px=geo.stereo_win,
                 levels=1,  # the predicted disparity is close: a shallow pyramid is enough
-                min_disparity_px=self.opts.min_disparity_px,
+                min_disparity_px=d_min,
             )
             # A disparity far from the prediction is a mismatch, not a measurement.
-            ok &= np.abs(disp - init) < np.maximum(2.0, 0.3 * init)
-            d = np.where(ok, disp + off, np.nan)
+            ok &= np.abs(disp - init[sel]) < np.maximum(2.0, 0.3 * init[sel])
+            d: npt.NDArray[Any] = np.full(len(px), np.nan, np.float32)  # float32, as the disparities
+            d[sel] = np.where(ok, disp + off, np.nan)
         elif depth_m is not None:
             fb = geo.intr.fx * geo.virtual_baseline_m
             if z is None:
@@ -173,4 +180,5 @@ class PosePolisher:
         good = np.isfinite(d)
         X_meas = geo.backproject(und[good], fb / d[good])
         self.meas = (np.flatnonzero(good), X_meas)
-        return refine_pose(T, X_kf, und, geo.K, d, fb, huber_px=1.0)
+        tw = geo.translation_weight(z_pred) if self.stereo else None
+        return refine_pose(T, X_kf, und, geo.K, d, fb, huber_px=1.0, translation_weight=tw)

@@ -231,6 +231,8 @@ class VoOptions:
             depth image is in range (0: start at once).
         max_depth_baselines: stereo points farther than this many baselines are not used (inf: all kept).
         min_disparity_px: stereo points with a smaller disparity are not used, px (the matching noise floor).
+        far_points: stereo points beyond the depth cap or minimum disparity: ``"drop"`` them, keep them
+            for the ``"rotation"`` only, or keep them with a say in the translation ``"weighted"`` by cap / depth.
         refine_with_depth: polish poses on the current frame's depth too (``motion.refine_pose``).
         depth_sigma_per_m2: depth images' noise: sigma_z = this x z^2 (Kinect v1: 1.425e-3 /m,
             Khoshelham & Elberink 2012); weighs registered depth in the polish (0: the fixed 0.1 m weight).
@@ -239,6 +241,8 @@ class VoOptions:
         stereo_fb_check: also check left-right stereo matches right-to-left.
         stereo_offset: stereo: estimate the pair's disparity offset online (``estimation.stereo_offset``; off:
             see docs/estimation-log.md).
+        stereo_offset_parallax_px: the offset's fit waits until the tracks moved this far since its reference
+            frame, px (0: every pair of frames).
         orb_fallback: match ORB against the keyframe when tracking fails (``FALLBACK``).
         keyframes: the keyframe policy (:class:`~estimation.keyframes.KeyframePolicy`).
         ba_window: local bundle adjustment over this many keyframes (0: off).
@@ -267,12 +271,14 @@ class VoOptions:
     init_min_depth_fraction: float = 0.0
     min_disparity_px: float = 3.0
     max_depth_baselines: float = 60.0
+    far_points: str = "drop"
     refine_with_depth: bool = True
     depth_sigma_per_m2: float = 1.425e-3
     track_sigma_px: float = 0.5
     fuse_depth: bool = True
     stereo_fb_check: bool = False
     stereo_offset: bool = False
+    stereo_offset_parallax_px: float = 0.0
     orb_fallback: bool = True
     keyframes: KeyframePolicy = field(default_factory=KeyframePolicy)
     ba_window: int = 0
@@ -295,6 +301,7 @@ class VoOptions:
             estimator=est,
             keyframes=replace(kf, max_parallax_px=kf.max_parallax_px * width_px / REF_WIDTH_PX),
             cell_px=round(self.cell_px * s),
+            stereo_offset_parallax_px=self.stereo_offset_parallax_px * s,
             klt_win_px=_odd_window((self.klt_win_px or 11) * s, 9),
             stereo_win_px=_odd_window(self.stereo_win_px * s, 9) if self.stereo_win_px else 0,
             fb_max_px=self.fb_max_px * n,
@@ -323,6 +330,8 @@ class VoOptions:
     def __post_init__(self) -> None:
         if self.pnp_method not in ("iterative", "epnp", "sqpnp"):
             raise EstimationError(f"VoOptions.pnp_method is {self.pnp_method!r}; use iterative, epnp or sqpnp")
+        if self.far_points not in ("drop", "rotation", "weighted"):
+            raise EstimationError(f"VoOptions.far_points is {self.far_points!r}; use 'drop', 'rotation' or 'weighted'")
         if self.pnp_kernel not in (None, "p3p", "ap3p"):
             raise EstimationError(f"VoOptions.pnp_kernel is {self.pnp_kernel!r}; use 'ap3p', 'p3p' or None")
         if self.max_features < 20:

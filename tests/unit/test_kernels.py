@@ -126,6 +126,8 @@ def test_refine_pose_refuses_inputs_the_compiled_loop_cannot_take() -> None:
         refine_pose(np.eye(4), X, uv[:9], K)
     with pytest.raises(EstimationError, match="and 11 disparities"):
         refine_pose(np.eye(4), X, uv, K, np.ones(11), 26.0)
+    with pytest.raises(EstimationError, match="and 9 translation weights"):
+        refine_pose(np.eye(4), X, uv, K, translation_weight=np.ones(9))
 
 
 @pytest.mark.parametrize("n", [4, 5, 16, 200, 457])
