@@ -112,7 +112,7 @@ class SimMocapSystem(Running):
         self._T_mocap_world = self.T_world_mocap.inverse()
         # a mocap frame on the world frame (the simulated lab's default) measures the truth as it is:
         # composing with the identity costs two scipy rotation operations per body and frame
-        self._mocap_is_world = self.T_world_mocap.almost_equal(Transform.identity(), 0.0, 0.0)
+        self._mocap_is_world = self.T_world_mocap.is_identity
         self.rate_hz = float(rate_hz)
         self.noise_m = float(noise_m)
         self.noise_rad = float(noise_rad)
