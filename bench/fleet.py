@@ -62,6 +62,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench._host import busy_s, process_cpu_s  # noqa: E402
 from flightkit.config import load_config  # noqa: E402
 from trajectories.fleet_plan import FleetPlan, FleetResult, fly_fleet_plan, parse_fleet_plan  # noqa: E402
 
@@ -86,21 +87,7 @@ def cpu_s() -> float:
     return r.ru_utime + r.ru_stime
 
 
-_TICK_S = 1.0 / os.sysconf("SC_CLK_TCK")
-
-
-def process_cpu_s(pid: int) -> float:
-    """CPU seconds (user + system, all its threads, ended ones too) that process ``pid`` has used."""
-    with open(f"/proc/{pid}/stat") as f:
-        fields = f.read().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) * _TICK_S
-
-
-def machine_busy_s() -> float:
-    """CPU seconds every core of the machine has spent busy (not idle, not waiting for I/O) since boot."""
-    with open("/proc/stat") as f:
-        fields = [int(x) for x in f.readline().split()[1:]]
-    return (sum(fields[:8]) - fields[3] - fields[4]) * _TICK_S
+_TICKS_PER_S = os.sysconf("SC_CLK_TCK")
 
 
 def free_port(kind: int) -> int:
@@ -153,7 +140,7 @@ def tasks_cpu_s() -> dict[int, tuple[str, float]]:
             continue
         fields = rest.split()
         tid = int(entry.name)
-        out[tid] = (names.get(tid, comm.rstrip("-0123456789")), (int(fields[11]) + int(fields[12])) * _TICK_S)
+        out[tid] = (names.get(tid, comm.rstrip("-0123456789")), (int(fields[11]) + int(fields[12])) / _TICKS_PER_S)
     return out
 
 
@@ -200,7 +187,7 @@ def run(
             start = tasks_cpu_s()
             sampler = threading.Thread(target=sample, name="bench-sampler", daemon=True)
             sampler.start()
-            c0, w0, s0, m0 = cpu_s(), time.monotonic(), process_cpu_s(sim.pid), machine_busy_s()
+            c0, w0, s0, m0 = cpu_s(), time.monotonic(), process_cpu_s(sim.pid), busy_s()
             if profile is not None:
                 profile.enable()
             try:
@@ -208,7 +195,7 @@ def run(
             finally:
                 if profile is not None:
                     profile.disable()
-            cores = Cores(cpu_s() - c0, process_cpu_s(sim.pid) - s0, machine_busy_s() - m0, time.monotonic() - w0)
+            cores = Cores(cpu_s() - c0, process_cpu_s(sim.pid) - s0, busy_s() - m0, time.monotonic() - w0)
             seen.update(tasks_cpu_s())
             stop.set()
             sampler.join()
