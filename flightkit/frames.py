@@ -249,6 +249,11 @@ class Transform:
     def yaw_rad(self) -> float:
         return yaw_from_rotation(self.rotation)
 
+    @property
+    def is_identity(self) -> bool:
+        """Exactly the identity: composing with it changes nothing (hot paths skip the composition)."""
+        return not self.translation.any() and float(self.rotation.magnitude()) == 0.0
+
     def as_matrix(self) -> npt.NDArray[np.float64]:
         """The 4x4 homogeneous matrix."""
         m = np.eye(4)

@@ -8,8 +8,9 @@
 5. return the cycle as a typed :class:`LogRow` (and append it to the flight log).
 
 :meth:`ControlLoop.track` repeats ticks until a phase is done. It is driven by mocap: it
-wakes when a new pose arrives (so the setpoint follows the sample by microseconds), and at
-least every ``1 / rate_hz`` seconds of clock time so stale mocap is still noticed.
+wakes when a new pose arrives (so the setpoint follows the sample by microseconds), and at the
+latest ``1 / rate_hz`` seconds of clock time after the previous cycle began (not after it ended:
+the cycle's own time does not slow the rate), so stale mocap is still noticed.
 
 The loop knows nothing of phases' meaning nor of the firmware: the phase sequencer
 (:mod:`trajectories.runner`) gives it patterns, the fault reactor
@@ -547,7 +548,9 @@ class ControlLoop:
                 return
             if now - start > timeout_s:
                 raise LinkTimeout(f"{phase} did not finish within {timeout_s:.0f} s", phase, timeout_s)
-            await self.wait_tick(period_s)
+            # the next cycle is due one period after this one began, whatever the cycle took; after
+            # a stall it runs at once and the period counts from there (no burst of catch-up cycles)
+            await self.wait_tick(now + period_s - self.clock.monotonic_s())
 
     def _stats_for(self, phase: str) -> PhaseStats:
         """The statistics entry of ``phase``: the current one if the previous phase had the same

@@ -60,6 +60,7 @@ class WorldFrameSource:
         self.name = name
         self._store = PoseStore(clock, name=name, fresh_within_s=fresh_within_s)
         self._T_mocap_world = frames.T_world_mocap.inverse()
+        self._mocap_is_world = frames.T_world_mocap.is_identity  # then a mocap pose is a world pose as it is
         self.hooks: list[Callable[[MocapPose], None]] = []
         self._entered = False
 
@@ -104,6 +105,8 @@ class WorldFrameSource:
     def _place(self, sample: MocapSample) -> tuple[Transform, Transform]:
         assert sample.T_frame_body is not None
         if sample.frame_id == MOCAP_FRAME_ID:
+            if self._mocap_is_world:  # two scipy rotation operations saved per pose (about 0.1 ms)
+                return sample.T_frame_body, sample.T_frame_body
             return self.world_frames.T_world_mocap @ sample.T_frame_body, sample.T_frame_body
         T_world = self.world_frames.to_world(sample.frame_id, sample.T_frame_body)
         return T_world, self._T_mocap_world @ T_world

@@ -1,6 +1,7 @@
 """A simulated fleet: several vehicles, each with its own autopilot on its own UDP port (or all
 behind one shared port or serial radio, :mod:`flightkit.sim.router`), under one mocap system that
-tracks every body, all on one clock.
+tracks every body, all on one clock. One thread (:class:`~flightkit.sim.stepper.SimStepper`) ticks
+every autopilot's physics and control; each keeps its own receive thread.
 
 The vehicles come from the lab config's ``[[vehicles]]`` entries (:meth:`LabConfig.fleet`), or
 from :func:`fleet_lab_config` for ``flightkit sim --vehicles N``. Each stands where its entry's
@@ -24,6 +25,7 @@ from flightkit.sim.autopilot import AutopilotOptions
 from flightkit.sim.lab import SimLab
 from flightkit.sim.mocap import SimMocapSystem
 from flightkit.sim.router import SimRouter
+from flightkit.sim.stepper import SimStepper
 
 __all__ = ["SPAWN_SPACING_M", "SimFleet", "fleet_lab_config"]
 
@@ -106,6 +108,7 @@ class SimFleet(Running):
         )
         self._shared_link = shared_link
         self.router: SimRouter | None = None  # the shared endpoint, once started
+        self.stepper: SimStepper | None = None  # the one thread ticking every autopilot, once started
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -139,7 +142,9 @@ class SimFleet(Running):
     def start(self) -> SimFleet:
         """Start every autopilot, the shared endpoint if any, and the mocap system; returns immediately."""
         for lab in self.labs.values():
-            lab.start()
+            lab.start(own_loop=False)
+        if self.stepper is None:
+            self.stepper = SimStepper(self.clock, [lab.autopilot for lab in self.labs.values()]).start()
         if self._shared_link is not None and self.router is None:
             behind = {self.system_ids[n]: lab.autopilot.bound_address for n, lab in self.labs.items()}
             self.router = SimRouter(behind, self._shared_link).start()
@@ -149,6 +154,9 @@ class SimFleet(Running):
     def stop(self) -> None:
         """Stop the mocap system, the shared endpoint and every autopilot; idempotent."""
         self.mocap.stop()
+        if self.stepper is not None:
+            self.stepper.stop()
+            self.stepper = None
         if self.router is not None:
             self.router.stop()
             self.router = None

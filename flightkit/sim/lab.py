@@ -125,14 +125,15 @@ class SimLab(Running):
 
     # ------------------------------------------------------------------ lifecycle
 
-    def start(self) -> SimLab:
-        """Bind the autopilot's socket and start simulating; returns immediately.
+    def start(self, *, own_loop: bool = True) -> SimLab:
+        """Bind the autopilot's socket and start simulating; returns immediately. With
+        ``own_loop=False`` the caller ticks the autopilot (:class:`~flightkit.sim.stepper.SimStepper`).
 
         Raises:
             EndpointError: the autopilot's port is in use.
         """
         if not self._started:
-            self.autopilot.start()
+            self.autopilot.start(own_loop=own_loop)
             self._started = True
         return self
 

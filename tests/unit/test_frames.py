@@ -99,3 +99,12 @@ def test_bad_inputs_raise() -> None:
         F.enu_to_ned([1.0, 2.0])
     with pytest.raises(TransformError, match="4x4 or 3x4"):
         Transform.from_matrix(np.eye(3))
+
+
+def test_is_identity_is_exact() -> None:
+    assert Transform.identity().is_identity
+    assert Transform(Rotation.from_quat([0.0, 0.0, 0.0, -1.0])).is_identity  # the same rotation, other sign
+    assert not Transform.from_xyz_yaw([0.0, 0.0, 0.0], 1e-12).is_identity
+    assert not Transform.from_xyz_yaw([1e-15, 0.0, 0.0], 0.0).is_identity
+    T = Transform.from_xyz_yaw([1.0, 2.0, 0.5], 0.3)  # noqa: N806
+    assert (Transform.identity() @ T).almost_equal(T, 0.0, 0.0)  # what skipping the composition relies on

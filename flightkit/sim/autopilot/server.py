@@ -3,8 +3,9 @@
 :class:`SimAutopilot` binds a real UDP socket (``udpin`` answers every sender, ``udpout``
 sends to a listening client as PX4 SITL does), runs one thread that receives datagrams and
 handles each message at once (so COMMAND_ACKs go out without waiting for a tick), and one
-that runs the control loop (modes, physics, estimator, streams) on the injected clock.
-Both take one lock. The behaviour itself comes from the layers it inherits
+that runs the control loop (modes, physics, estimator, streams) on the injected clock (or
+none: a fleet's :class:`~flightkit.sim.stepper.SimStepper` ticks every autopilot from one
+thread through :meth:`SimAutopilot.step`). Both take one lock. The behaviour itself comes from the layers it inherits
 (:mod:`.core`, :mod:`.flight`, :mod:`.telemetry`, :mod:`.commands`).
 """
 
@@ -63,8 +64,11 @@ class SimAutopilot(_AutopilotInbound):
             return f"udpout:{self._host}:{self.bound_address[1]}"
         return f"udpin:{self._host}:{self._port}"
 
-    def start(self) -> None:
+    def start(self, *, own_loop: bool = True) -> None:
         """Bind the socket and start the receive and control threads; returns immediately.
+
+        With ``own_loop=False`` there is no control thread: whoever started it calls :meth:`step`
+        every tick (a :class:`~flightkit.sim.stepper.SimStepper` ticking a fleet's autopilots).
 
         Raises:
             EndpointError: the address is in use or cannot be bound.
@@ -100,10 +104,9 @@ class SimAutopilot(_AutopilotInbound):
                 self._clients[addr] = _Client(addr, self._new_parser(), now, fixed=True)
             self._next_due = {m: now for m in self._intervals}
         self._running.set()
-        self._threads = [
-            threading.Thread(target=self._rx_loop, name="sim-autopilot-rx", daemon=True),
-            threading.Thread(target=self._control_loop, name="sim-autopilot-loop", daemon=True),
-        ]
+        self._threads = [threading.Thread(target=self._rx_loop, name="sim-autopilot-rx", daemon=True)]
+        if own_loop:
+            self._threads.append(threading.Thread(target=self._control_loop, name="sim-autopilot-loop", daemon=True))
         for t in self._threads:
             t.start()
         logger.info(
@@ -179,13 +182,19 @@ class SimAutopilot(_AutopilotInbound):
         speed = self.clock.speed
         tick_sim_s = self.options.tick_wall_s * speed if math.isfinite(speed) else 0.01
         while self._running.is_set():
-            now = self.clock.monotonic_s()
-            with self._lock:
-                try:
-                    self._tick(now)
-                except Exception:
-                    logger.exception("simulator tick failed")
+            self.step(self.clock.monotonic_s())
             self.clock.sleep_blocking(tick_sim_s)
+
+    def step(self, now: float) -> None:
+        """One control tick at clock time ``now``: modes, physics since the last tick (at most
+        :data:`MAX_TICK_S`), estimator, streams. The control thread calls it, or a stepper."""
+        if not self._running.is_set():
+            return
+        with self._lock:
+            try:
+                self._tick(now)
+            except Exception:
+                logger.exception("simulator tick failed")
 
     def _tick(self, now: float) -> None:
         dt = min(max(0.0, now - self._last_tick_s), MAX_TICK_S)
