@@ -276,16 +276,15 @@ def test_pva_targets_track_tighter_on_the_simulated_ardupilot(tmp_path: Path) ->
 def shortened_for_mavsdk(name: str) -> Plan:
     """MAVSDK runs on wall time, so its flights run at 3x: a 20 s circle lap, and the rectangle and
     lawnmower with 1 s turns (same speed as above; 0.5 m/s gave 0.13 m max at the rectangle's
-    corners through MAVSDK). The lawnmower covers half the width (two lanes, 2 m x 0.5 m): the
-    lane change, the turns and the lane ends are all there in half the time."""
+    corners through MAVSDK). The rectangle is half size (1 m x 0.5 m) and the lawnmower covers
+    1 m x 0.5 m (two 1 m lanes): the corners, the turns, the lane change and the lane ends are
+    all there in under half the time."""
     plan = shortened(name)
     settings = dataclasses.replace(plan.settings, hold_before_s=0.5, hold_after_s=0.5)
     if name == "circle":
         pattern = dataclasses.replace(plan.pattern, period_s=20.0)
-    elif name == "lawnmower":
-        pattern = dataclasses.replace(plan.pattern, turn_s=1.0, size_m=(2.0, 0.5))
     else:
-        pattern = dataclasses.replace(plan.pattern, turn_s=1.0)
+        pattern = dataclasses.replace(plan.pattern, turn_s=1.0, size_m=(1.0, 0.5))
     return plan.with_changes(settings=settings, pattern=pattern)
 
 
@@ -312,9 +311,9 @@ def test_mavsdk_backend_flies_the_patterns(name: str, autopilot: str, tmp_path: 
         assert np.all(np.abs(np.hypot(x, y) - 1.0) < 0.1)
         swept = np.unwrap(np.arctan2(y, x))
         assert swept[-1] - swept[0] > 2 * math.pi - 0.15
-    elif name == "rectangle":
-        for cx, cy in ((-1.0, -0.5), (1.0, -0.5), (1.0, 0.5), (-1.0, 0.5)):
+    elif name == "rectangle":  # 1 m x 0.5 m centred on the origin: every corner visited
+        for cx, cy in ((-0.5, -0.25), (0.5, -0.25), (0.5, 0.25), (-0.5, 0.25)):
             assert np.min(np.hypot(x - cx, y - cy)) < 0.08, (cx, cy)
-    else:
+    else:  # two 1 m lanes, each flown end to end
         for lane_y in (-0.25, 0.25):
-            assert np.ptp(x[np.abs(y - lane_y) < 0.05]) > 1.85, lane_y
+            assert np.ptp(x[np.abs(y - lane_y) < 0.05]) > 0.85, lane_y
