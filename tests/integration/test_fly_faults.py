@@ -279,10 +279,11 @@ def test_host_stall_slows_the_lab_instead_of_tripping_its_deadlines(stall_then_d
 
 @pytest.mark.parametrize("autopilot", ["px4", "ardupilot"])
 def test_geofence_breach_holds_then_lands_inside(tmp_path: Path, autopilot: str) -> None:
-    # the circle goes round from (-1, 0) through (0, -1) to (1, 0): a fence at x = 0.5 is crossed
+    # the circle goes round from (-1, 0) through (0, -1) to (1, 0): a fence at y = -0.5 is
+    # crossed 30 degrees (3.3 s) into the lap
     plan = circle_plan(
         check_plan_in_fence=False,
-        geofence=dataclasses.replace(circle_plan().safety.geofence, max_m=(0.5, 2.5, 2.5)),
+        geofence=dataclasses.replace(circle_plan().safety.geofence, min_m=(-2.5, -0.5, -0.5)),
     )
     run = asyncio.run(fly_with_fault(tmp_path, lambda r, _s: None, plan=plan, autopilot=autopilot))
     s = run.summary
@@ -293,8 +294,8 @@ def test_geofence_breach_holds_then_lands_inside(tmp_path: Path, autopilot: str)
     assert names[-2:] == ["abort_hold", "land"]
     assert s.phase("abort_hold").duration_s == pytest.approx(plan.safety.abort_hold_s, abs=0.3)
     assert not run.armed and run.height_m < 0.05
-    x_final = float(run.session.lab.truth().pos_enu_m[0])
-    assert x_final < 0.5  # stopped before the fence (the reference is checked ahead), landed inside
+    y_final = float(run.session.lab.truth().pos_enu_m[1])
+    assert y_final > -0.5  # stopped before the fence (the reference is checked ahead), landed inside
 
 
 def test_fault_during_ardupilots_own_liftoff_holds_then_lands(tmp_path: Path) -> None:
