@@ -328,17 +328,8 @@ def test_a_slow_mocap_stream_is_refused_before_arming() -> None:
                 await fly_plan(plan, s.config, link=s.link, mocap=s.mocap, clock=s.clock, arm=True, log_path="")
             assert info.value.reason == "preflight"
             assert not s.lab.autopilot.armed
-        # the same stream passes the default bound (20 Hz), and the flight reports its latency
-        async with sim_session(autopilot="px4", speed=SPEED, mocap_rate_hz=30.0) as s:
-            quick = circle_plan().with_changes(
-                pattern=dataclasses.replace(circle_plan().pattern, period_s=10.0), settings=dataclasses.replace(
-                    circle_plan().settings, hold_before_s=0.0, hold_after_s=0.0
-                )
-            )
-            summary = await fly_plan(quick, s.config, link=s.link, mocap=s.mocap, clock=s.clock, arm=True, log_path="")
-            assert summary.outcome == "completed", summary.format_table()
-            assert 0.0 < summary.latency_p50_ms <= summary.latency_p99_ms, summary.format_table()
-            assert "mocap sample to setpoint: p50" in summary.format_table()
+        # a stream above the default bound (20 Hz) is flown on, and the flight reports its latency:
+        # tests/integration/test_fly_latency.py flies its latency flight on 30 Hz mocap
 
     asyncio.run(go())
 
