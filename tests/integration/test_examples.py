@@ -50,6 +50,9 @@ def test_fly_plan_with_plot(tmp_path: Path) -> None:
     text = (EXAMPLES / "rectangle.toml").read_text()
     text = text.replace("speed_m_s = 0.1", "speed_m_s = 0.3").replace("laps = 2", "laps = 1")
     text = text.replace("turn_s = 5.0", "turn_s = 1.0").replace("hold_before_s = 5.0", "hold_before_s = 0.5")
+    # half the size (1 m x 0.5 m): the test is about the script and its plot, not the tracking
+    text = text.replace("size_m = [2.0, 1.0]", "size_m = [1.0, 0.5]")
+    assert "size_m = [1.0, 0.5]" in text
     plan.write_text(text.replace("hold_after_s = 5.0", "hold_after_s = 0.5"))
     r = run_example(
         "fly_plan.py", str(plan), "--speed", "5", "--log", str(tmp_path / "r.csv"), "--plot", cwd=tmp_path

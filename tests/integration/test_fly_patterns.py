@@ -4,7 +4,8 @@ Each flight is the real plan from ``examples/`` (preflight, arm, take-off, hold,
 hold, land, disarm) over real UDP to the simulated PX4 / ArduPilot, with the simulated mocap
 on the same accelerated clock. Durations are shortened through plan overrides so the file
 stays within a couple of minutes: one lap instead of two, short holds, and the rectangle and
-lawnmower at 0.25 m/s with 2 s corner turns instead of 0.1 m/s and 5 s (same geometry). The
+lawnmower at 0.25 m/s with 2 s corner turns instead of 0.1 m/s and 5 s (same geometry on
+ArduPilot; half length on PX4, see ``PX4_SIZE_M``). The
 pymavlink backend flies every pattern on both personalities; the MAVSDK backend (on wall time,
 so at 2x and faster still) flies every pattern and both personalities in three flights.
 
@@ -122,6 +123,20 @@ def shortened(name: str) -> Plan:
     return plan.with_changes(settings=settings, pattern=pattern)
 
 
+# PX4 flies the rectangle and the lawnmower at half length (a 1 m x 0.5 m rectangle; three 1 m
+# lanes): every corner, turn in place and lane change, in less time. ArduPilot flies them full
+# size, as its take-off, goto and landing are held to the real firmware's figures on those plans.
+PX4_SIZE_M = {"rectangle": (1.0, 0.5), "lawnmower": (1.0, 1.0)}
+
+
+def pattern_plan(name: str, autopilot: str) -> Plan:
+    """``shortened(name)``, at ``PX4_SIZE_M`` on PX4."""
+    plan = shortened(name)
+    if autopilot == "px4":
+        plan = plan.with_changes(pattern=dataclasses.replace(plan.pattern, size_m=PX4_SIZE_M[name]))
+    return plan
+
+
 def assert_clean(summary: FlightSummary) -> None:
     assert summary.outcome == "completed", summary.format_table()
     unexpected = [f for f in summary.faults if f.kind.value != "mocap_stale"]
@@ -202,7 +217,8 @@ def test_circle_tracks_within_bounds_and_looks_inward(autopilot: str, tmp_path: 
 
 @pytest.mark.parametrize("autopilot", ["px4", "ardupilot"])
 def test_rectangle_flies_its_corners_with_turns_in_place(autopilot: str, tmp_path: Path) -> None:
-    summary = asyncio.run(fly("rectangle", autopilot, "pymavlink", SPEED, tmp_path))
+    plan = pattern_plan("rectangle", autopilot)
+    summary = asyncio.run(fly("rectangle", autopilot, "pymavlink", SPEED, tmp_path, plan))
     assert_clean(summary)
     pat = summary.phase("pattern")
     assert pat.rms_error_m < rms_bound("rectangle", autopilot), summary.format_table()
@@ -212,10 +228,11 @@ def test_rectangle_flies_its_corners_with_turns_in_place(autopilot: str, tmp_pat
 
     r = pattern_rows(summary.log_path or "")
     x, y = r["pos_x_m"], r["pos_y_m"]
-    # 2 m x 1 m centred on the origin: every corner visited, nothing flown outside it
-    for cx, cy in ((-1.0, -0.5), (1.0, -0.5), (1.0, 0.5), (-1.0, 0.5)):
+    # centred on the origin (2 m x 1 m, on PX4 1 m x 0.5 m): every corner visited, nothing flown outside it
+    hx, hy = plan.pattern.size_m[0] / 2.0, plan.pattern.size_m[1] / 2.0
+    for cx, cy in ((-hx, -hy), (hx, -hy), (hx, hy), (-hx, hy)):
         assert np.min(np.hypot(x - cx, y - cy)) < 0.05, (cx, cy)
-    assert np.all(np.abs(x) < 1.0 + MAX_BOUND_M) and np.all(np.abs(y) < 0.5 + MAX_BOUND_M)
+    assert np.all(np.abs(x) < hx + MAX_BOUND_M) and np.all(np.abs(y) < hy + MAX_BOUND_M)
     # the yaw turns only while standing at a corner (speed ~0 while the yaw rate is large), except
     # while the yaw catches up after the control loop missed its ticks (see settled())
     ok = settled(r["t_s"])
@@ -232,7 +249,8 @@ def test_rectangle_flies_its_corners_with_turns_in_place(autopilot: str, tmp_pat
 
 @pytest.mark.parametrize("autopilot", ["px4", "ardupilot"])
 def test_lawnmower_covers_its_lanes(autopilot: str, tmp_path: Path) -> None:
-    summary = asyncio.run(fly("lawnmower", autopilot, "pymavlink", SPEED, tmp_path))
+    plan = pattern_plan("lawnmower", autopilot)
+    summary = asyncio.run(fly("lawnmower", autopilot, "pymavlink", SPEED, tmp_path, plan))
     assert_clean(summary)
     pat = summary.phase("pattern")
     assert pat.rms_error_m < rms_bound("lawnmower", autopilot), summary.format_table()
@@ -243,9 +261,11 @@ def test_lawnmower_covers_its_lanes(autopilot: str, tmp_path: Path) -> None:
     r = pattern_rows(summary.log_path or "")
     x, y = r["pos_x_m"], r["pos_y_m"]
     # lanes along x at y = -0.5, 0, 0.5 (0.5 m spacing over a 1 m width), each flown end to end
+    # (2 m long, on PX4 1 m)
+    lane_m = plan.pattern.size_m[0]
     for lane_y in (-0.5, 0.0, 0.5):
         on_lane = np.abs(y - lane_y) < 0.03
-        assert np.ptp(x[on_lane]) > 1.9, lane_y
+        assert np.ptp(x[on_lane]) > lane_m - 0.1, lane_y
 
 
 def with_pva(plan: Plan) -> Plan:
@@ -281,16 +301,15 @@ def test_pva_targets_track_tighter_on_the_simulated_ardupilot(tmp_path: Path) ->
 def shortened_for_mavsdk(name: str) -> Plan:
     """MAVSDK runs on wall time, so its flights run at 3x: a 20 s circle lap, and the rectangle and
     lawnmower with 1 s turns (same speed as above; 0.5 m/s gave 0.13 m max at the rectangle's
-    corners through MAVSDK). The lawnmower covers half the width (two lanes, 2 m x 0.5 m): the
-    lane change, the turns and the lane ends are all there in half the time."""
+    corners through MAVSDK). The rectangle is half size (1 m x 0.5 m) and the lawnmower covers
+    1 m x 0.5 m (two 1 m lanes): the corners, the turns, the lane change and the lane ends are
+    all there in under half the time."""
     plan = shortened(name)
     settings = dataclasses.replace(plan.settings, hold_before_s=0.5, hold_after_s=0.5)
     if name == "circle":
         pattern = dataclasses.replace(plan.pattern, period_s=20.0)
-    elif name == "lawnmower":
-        pattern = dataclasses.replace(plan.pattern, turn_s=1.0, size_m=(2.0, 0.5))
     else:
-        pattern = dataclasses.replace(plan.pattern, turn_s=1.0)
+        pattern = dataclasses.replace(plan.pattern, turn_s=1.0, size_m=(1.0, 0.5))
     return plan.with_changes(settings=settings, pattern=pattern)
 
 
@@ -317,9 +336,9 @@ def test_mavsdk_backend_flies_the_patterns(name: str, autopilot: str, tmp_path: 
         assert np.all(np.abs(np.hypot(x, y) - 1.0) < 0.1)
         swept = np.unwrap(np.arctan2(y, x))
         assert swept[-1] - swept[0] > 2 * math.pi - 0.15
-    elif name == "rectangle":
-        for cx, cy in ((-1.0, -0.5), (1.0, -0.5), (1.0, 0.5), (-1.0, 0.5)):
+    elif name == "rectangle":  # 1 m x 0.5 m centred on the origin: every corner visited
+        for cx, cy in ((-0.5, -0.25), (0.5, -0.25), (0.5, 0.25), (-0.5, 0.25)):
             assert np.min(np.hypot(x - cx, y - cy)) < 0.08, (cx, cy)
-    else:
+    else:  # two 1 m lanes, each flown end to end
         for lane_y in (-0.25, 0.25):
-            assert np.ptp(x[np.abs(y - lane_y) < 0.05]) > 1.85, lane_y
+            assert np.ptp(x[np.abs(y - lane_y) < 0.05]) > 0.85, lane_y

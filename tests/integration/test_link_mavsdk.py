@@ -1,8 +1,9 @@
 """MavsdkLink over real UDP against the simulated autopilot (and against nothing at all).
 
 MAVSDK keeps wall time inside (command retries, its 3 s connection timeout, the 20 Hz
-offboard re-send), so the simulator and the link share a ``SimClock`` at speed 2 (stall-limited):
-a flight of ~16 simulated seconds takes ~8 s of wall time. Ports are chosen by the OS.
+offboard re-send), so the simulator and the link share a ``SimClock`` at speed 3 (stall-limited;
+MAVSDK keeps up at 3x, as in tests/integration/test_fly_patterns.py): a flight of ~16 simulated
+seconds takes ~5.5 s of wall time. Ports are chosen by the OS.
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ from flightkit.sim.lab import SimEvent, SimLab
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(90)]
 
-SPEED = 2.0
+SPEED = 3.0
 
 
 def asynctest(fn: Callable[..., Awaitable[None]]) -> Callable[..., None]:
