@@ -15,6 +15,27 @@ import pytest
 # ms with OpenBLAS's two threads on this busy 2-core machine and 0.3 ms with one; same results.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
+
+
+def _private_bus_port() -> int:
+    """A free TCP port below Linux's ephemeral range (so no session's own ephemeral listener takes
+    it between tests), picked from the process id so two test runs on one machine differ."""
+    for k in range(200):
+        port = 20000 + (os.getpid() + 37 * k) % 12000
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
+    raise OSError("no free TCP port for the test run's bus between 20000 and 32000")
+
+
+# The test run's own bus: every embedded-default Zenoh session of the tests and of the commands
+# they start meets on this port instead of 7447, so tests never join a lab's bus on this machine,
+# nor another test run's (flightkit/bus/session.py, FLIGHTKIT_BUS_PORT).
+os.environ.setdefault("FLIGHTKIT_BUS_PORT", str(_private_bus_port()))
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO_ROOT.parent / "shared" / "data"
 

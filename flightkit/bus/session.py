@@ -18,6 +18,11 @@ Three set-ups, picked by config alone:
 
 Multicast scouting is off unless ``multicast_scouting = true``.
 
+The environment variable ``FLIGHTKIT_BUS_PORT`` replaces the default well-known port (7447)
+for every session of the process and its children; a config that names another port keeps
+it. The test suite sets it, so a test run never joins a lab's bus on the same machine, nor
+another test run's.
+
 Transport tuning (applied unless a ``zenoh_config_file`` sets the key itself): a best-effort
 publisher (images) waits up to :data:`DROP_WAIT_US` for room in the transmit queue before
 Zenoh drops the sample, instead of Zenoh's 1 ms, and the data priority gets a deeper queue.
@@ -56,6 +61,25 @@ _TRANSPORT_DEFAULTS: dict[str, tuple[Any, Any]] = {
     "transport/link/tx/queue/congestion_control/drop/wait_before_drop": (1000, DROP_WAIT_US),
     "transport/link/tx/queue/size/data": (2, 16),
 }
+
+
+PORT_ENV = "FLIGHTKIT_BUS_PORT"
+"""Environment variable: replaces the default ``well_known_port`` (see the module docstring)."""
+
+
+def well_known_port(cfg: BusConfig) -> int:
+    """``cfg``'s well-known loopback port, or ``$FLIGHTKIT_BUS_PORT`` when ``cfg`` keeps the default.
+
+    Raises:
+        BusError: when the variable is set but is not a port number.
+    """
+    default = BusConfig().well_known_port
+    text = os.environ.get(PORT_ENV, "").strip()
+    if cfg.well_known_port != default or not text:
+        return cfg.well_known_port
+    if not text.isdigit() or not 1 <= int(text) <= 65535:
+        raise BusError(f"{PORT_ENV}={text!r} is not a TCP port: set it to a number from 1 to 65535, or unset it")
+    return int(text)
 
 
 def _loopback(port: int) -> str:
@@ -169,19 +193,19 @@ def open_session(cfg: BusConfig | None = None) -> zenoh.Session:
     cfg = cfg or BusConfig()
     if not _uses_embedded_default(cfg):
         if cfg.mode is BusMode.CLIENT and not cfg.connect:
-            connect: tuple[str, ...] | None = (_loopback(cfg.well_known_port),)
+            connect: tuple[str, ...] | None = (_loopback(well_known_port(cfg)),)
         else:
             connect = None
         listen: tuple[str, ...] | None = None
         if cfg.mode is BusMode.ROUTER and not cfg.listen:
-            listen = (f"tcp/0.0.0.0:{cfg.well_known_port}",)
+            listen = (f"tcp/0.0.0.0:{well_known_port(cfg)}",)
         conf = build_zenoh_config(cfg, listen=listen, connect=connect)
         what = f"{cfg.mode.value}, listen {list(listen or cfg.listen)}, connect {list(connect or cfg.connect)}"
         s = _open(conf, what)
         logger.info("bus session %s opened (%s)", s.zid(), what)
         return s
 
-    well_known = _loopback(cfg.well_known_port)
+    well_known = _loopback(well_known_port(cfg))
     last: Exception | None = None
     for attempt in range(_OPEN_ATTEMPTS):
         # 1. Be the first: listen on the well-known port.

@@ -24,7 +24,7 @@ from flightkit.bus import msgs as M
 from flightkit.bus.pubsub import _ATTACHMENT_V1 as _ATTACHMENT
 from flightkit.bus.pubsub import _MAGIC_V1 as _MAGIC
 from flightkit.bus.pubsub import BusPublisher, BusSample, BusSubscriber, cdr_encoding
-from flightkit.bus.session import build_zenoh_config, open_session, session_locators
+from flightkit.bus.session import build_zenoh_config, bus_session, open_session, session_locators
 from flightkit.config import BusConfig, BusMode
 from flightkit.errors import BusError
 from tests.conftest import REPO_ROOT, free_tcp_port
@@ -424,3 +424,20 @@ def test_zenoh_config_file_is_merged_and_access_control_applies(tmp_path: Path) 
             assert secret.received() == 0  # denied by the file's ACL
             for x in (ok, secret, pub_ok, pub_secret):
                 x.close()
+
+
+def test_the_port_variable_replaces_only_the_default_well_known_port(monkeypatch: pytest.MonkeyPatch) -> None:
+    from flightkit.bus.session import PORT_ENV, well_known_port
+
+    port = free_tcp_port()
+    monkeypatch.setenv(PORT_ENV, str(port))
+    assert well_known_port(BusConfig()) == port
+    assert well_known_port(BusConfig(well_known_port=port + 1)) == port + 1  # a config's own port wins
+    with ExitStack() as stack:  # two default sessions meet on the variable's port
+        s1 = stack.enter_context(bus_session())
+        s2 = stack.enter_context(bus_session())
+        assert any(link.endswith(f"tcp/127.0.0.1:{port}") for link in session_locators(s2)), session_locators(s2)
+        link_up(s2, s1)
+    monkeypatch.setenv(PORT_ENV, "seventy")
+    with pytest.raises(BusError, match="FLIGHTKIT_BUS_PORT='seventy' is not a TCP port"):
+        open_session(BusConfig())
