@@ -38,6 +38,8 @@ class PosePolisher:
         self.geo = geometry
         self.opts = options
         self.stereo = stereo
+        self.huber_px = options.polish_huber_sigmas * options.track_sigma_px
+        """The Huber width of the polish's residuals, px (``polish_huber_sigmas`` track noises)."""
         self.meas: Meas | None = None
         """The depth measured by the last polish: track indices (into the polished subset,
         remapped by :meth:`remap`) and their 3D points in the current camera; None if none."""
@@ -143,9 +145,10 @@ class PosePolisher:
         """Polish a pose with the current frame's own depth (disparity residuals); ``z``: the
         depth at ``px`` if already looked up (depth lookup is per pixel). Sets ``meas``."""
         geo = self.geo
+        huber = self.huber_px
         if self.stereo:
             if right_gray is None or geo.rig is None:
-                return refine_pose(T, X_kf, und, geo.K)
+                return refine_pose(T, X_kf, und, geo.K, huber_px=huber)
             fb = geo.rig.fx * geo.rig.baseline_m
             off = np.float32(geo.disparity_offset_px)
             z_pred = X_kf @ T[2, :3] + T[2, 3]
@@ -169,8 +172,8 @@ class PosePolisher:
                 z = geo.depth_at(depth_m, px)
             d = fb / z
         else:
-            return refine_pose(T, X_kf, und, geo.K)
+            return refine_pose(T, X_kf, und, geo.K, huber_px=huber)
         good = np.isfinite(d)
         X_meas = geo.backproject(und[good], fb / d[good])
         self.meas = (np.flatnonzero(good), X_meas)
-        return refine_pose(T, X_kf, und, geo.K, d, fb, huber_px=1.0)
+        return refine_pose(T, X_kf, und, geo.K, d, fb, huber_px=huber)
