@@ -239,7 +239,7 @@ class FrontEnd:
         w, h = geometry.intr.width, geometry.intr.height
         cell = options.cell_px or max(12, int(math.sqrt(w * h / options.max_features) * 1.1))
         self.grid = GridDetector(
-            options.max_features, cell, options.fast_threshold, border_px=round(options.border_px)
+            options.max_features, cell, options.fast_threshold, border_px=options.border_px
         )
         self.orb = DescriptorExtractor("orb", 1000)
         # The keyframe: its points (keyframe camera frame, m), their pixels there, ids, fusion

@@ -38,8 +38,6 @@ class PosePolisher:
         self.geo = geometry
         self.opts = options
         self.stereo = stereo
-        self.huber_px = options.polish_huber_sigmas * options.track_sigma_px
-        """The Huber width of the polish's residuals, px (``polish_huber_sigmas`` track noises)."""
         self.meas: Meas | None = None
         """The depth measured by the last polish: track indices (into the polished subset,
         remapped by :meth:`remap`) and their 3D points in the current camera; None if none."""
@@ -145,7 +143,7 @@ class PosePolisher:
         """Polish a pose with the current frame's own depth (disparity residuals); ``z``: the
         depth at ``px`` if already looked up (depth lookup is per pixel). Sets ``meas``."""
         geo = self.geo
-        huber = self.huber_px
+        huber = self.opts.polish_huber_px
         if self.stereo:
             if right_gray is None or geo.rig is None:
                 return refine_pose(T, X_kf, und, geo.K, huber_px=huber)
