@@ -288,10 +288,10 @@ def reproj_err2(X: Any, T: Any, uv: Any, fx: float, fy: float, cx: float, cy: fl
 
 @njit(cache=True)
 def project(
-    X: Any, T: Any, fx: float, fy: float, cx: float, cy: float, width: float, height: float
+    X: Any, T: Any, fx: float, fy: float, cx: float, cy: float, width: float, height: float, margin: float
 ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.bool_]]:
     """Pinhole projection of (N, 3) points under ``T``: (N, 2) float32 pixels and (N,) bool
-    "in front (z > 0.05 m) and within 20 px of the image"."""
+    "in front (z > 0.05 m) and within ``margin`` px of the image"."""
     n = X.shape[0]
     uv = np.empty((n, 2), np.float32)
     inside = np.empty(n, np.bool_)
@@ -303,7 +303,7 @@ def project(
         v = fy * _xform(X, T, i, 1) / zc + cy
         uv[i, 0] = u
         uv[i, 1] = v
-        inside[i] = front and u > -20 and u < width + 20 and v > -20 and v < height + 20
+        inside[i] = front and u > -margin and u < width + margin and v > -margin and v < height + margin
     return uv, inside
 
 

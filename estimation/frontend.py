@@ -206,20 +206,21 @@ class CameraGeometry:
 
     def project(self, T_cur_kf: F64, X: F64) -> tuple[F32, Bool]:
         """Pixels (float32) of keyframe points under ``T_cur_kf`` and which are in front and
-        within 20 px of the image."""
+        within ``project_margin_px`` of the image."""
         i = self.intr
+        m = float(self.opts.project_margin_px)
         Xk = np.ascontiguousarray(X, dtype=np.float64)
         Tk = np.ascontiguousarray(T_cur_kf, dtype=np.float64)
         if self.dist is None:
             uv_k: F32
             inside_k: Bool
-            uv_k, inside_k = _kernels.project(Xk, Tk, i.fx, i.fy, i.cx, i.cy, float(i.width), float(i.height))
+            uv_k, inside_k = _kernels.project(Xk, Tk, i.fx, i.fy, i.cx, i.cy, float(i.width), float(i.height), m)
             return uv_k, inside_k
         Xc = _kernels.transform(Xk, Tk)
         front = Xc[:, 2] > 0.05
         pts, _ = cv2.projectPoints(Xc[:, None, :], np.zeros(3), np.zeros(3), self.K, self.dist)
         u, v = pts[:, 0, 0], pts[:, 0, 1]
-        inside = front & (u > -20) & (u < i.width + 20) & (v > -20) & (v < i.height + 20)
+        inside = front & (u > -m) & (u < i.width + m) & (v > -m) & (v < i.height + m)
         uv = np.empty((len(u), 2), np.float32)
         uv[:, 0] = u
         uv[:, 1] = v
@@ -266,7 +267,9 @@ class FrontEnd:
         self.stereo = stereo
         w, h = geometry.intr.width, geometry.intr.height
         cell = options.cell_px or max(12, int(math.sqrt(w * h / options.max_features) * 1.1))
-        self.grid = GridDetector(options.max_features, cell, options.fast_threshold, border_px=8)
+        self.grid = GridDetector(
+            options.max_features, cell, options.fast_threshold, border_px=options.border_px
+        )
         self.orb = DescriptorExtractor("orb", 1000)
         # The keyframe: its points (keyframe camera frame, m), their pixels there, ids, fusion
         # weights, where they were tracked to last, and how many it started with.

@@ -145,9 +145,10 @@ class PosePolisher:
         """Polish a pose with the current frame's own depth (disparity residuals); ``z``: the
         depth at ``px`` if already looked up (depth lookup is per pixel). Sets ``meas``."""
         geo = self.geo
+        huber = self.opts.polish_huber_px
         if self.stereo:
             if right_gray is None or geo.rig is None:
-                return refine_pose(T, X_kf, und, geo.K)
+                return refine_pose(T, X_kf, und, geo.K, huber_px=huber)
             fb = geo.rig.fx * geo.rig.baseline_m
             off = np.float32(geo.disparity_offset_px)
             z_pred = X_kf @ T[2, :3] + T[2, 3]
@@ -176,9 +177,9 @@ class PosePolisher:
                 z = geo.depth_at(depth_m, px)
             d = fb / z
         else:
-            return refine_pose(T, X_kf, und, geo.K)
+            return refine_pose(T, X_kf, und, geo.K, huber_px=huber)
         good = np.isfinite(d)
         X_meas = geo.backproject(und[good], fb / d[good])
         self.meas = (np.flatnonzero(good), X_meas)
         tw = geo.translation_weight(z_pred) if self.stereo else None
-        return refine_pose(T, X_kf, und, geo.K, d, fb, huber_px=1.0, translation_weight=tw)
+        return refine_pose(T, X_kf, und, geo.K, d, fb, huber_px=huber, translation_weight=tw)

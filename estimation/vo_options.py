@@ -215,6 +215,8 @@ class VoOptions:
         max_features: corners kept per keyframe.
         cell_px: grid cell of the corner detector, px (0: from the image size and the budget).
         fast_threshold: FAST threshold (grey levels).
+        border_px: corners nearer the image border are not detected, px (not converted per camera: see the log).
+        project_margin_px: tracks predicted up to this far outside the image still start LK there, px.
         klt_win_px, klt_levels: LK window, px (0: 11, at least 9 after scaling); levels (None: 3).
         klt_back_levels: pyramid levels of the backward (checking) LK pass (at most ``klt_levels``).
         klt_iters: LK iterations per pyramid level at most.
@@ -237,6 +239,7 @@ class VoOptions:
         depth_sigma_per_m2: depth images' noise: sigma_z = this x z^2 (Kinect v1: 1.425e-3 /m,
             Khoshelham & Elberink 2012); weighs registered depth in the polish (0: the fixed 0.1 m weight).
         track_sigma_px: the tracks' pixel noise the depth residuals are weighed against, px.
+        polish_huber_px: the pose polish's Huber width, px (not converted per camera: see the log).
         fuse_depth: fuse each frame's depth of tracked points into their 3D estimates.
         stereo_fb_check: also check left-right stereo matches right-to-left.
         stereo_offset: stereo: estimate the pair's disparity offset online (``estimation.stereo_offset``; off:
@@ -253,6 +256,8 @@ class VoOptions:
     max_features: int = 300
     cell_px: int = 0
     fast_threshold: int = 20
+    border_px: int = 8
+    project_margin_px: float = 20.0
     klt_win_px: int = 0
     klt_levels: int | None = None
     klt_back_levels: int = 1
@@ -275,6 +280,7 @@ class VoOptions:
     refine_with_depth: bool = True
     depth_sigma_per_m2: float = 1.425e-3
     track_sigma_px: float = 0.5
+    polish_huber_px: float = 1.0
     fuse_depth: bool = True
     stereo_fb_check: bool = False
     stereo_offset: bool = False
@@ -287,7 +293,8 @@ class VoOptions:
     def for_camera(self, focal_px: float, width_px: int) -> VoOptions:
         """These options in the pixels of a camera with focal length ``focal_px`` and images
         ``width_px`` wide: image motions times ``focal_px / REF_FOCAL_PX``; tolerances on measured
-        pixels (thresholds, gates, minimum disparity) times that ratio when it is above 1; LK
+        pixels (thresholds, gates, minimum disparity, the projection's margin) times that ratio
+        when it is above 1; LK
         windows times the ratio, odd and at least 9 px; the keyframe parallax times
         ``width_px / REF_WIDTH_PX``."""
         s = focal_px / REF_FOCAL_PX
@@ -308,6 +315,7 @@ class VoOptions:
             klt_trust_prior_px=self.klt_trust_prior_px * n,
             reproj_px=self.reproj_px * n,
             track_sigma_px=self.track_sigma_px * n,
+            project_margin_px=self.project_margin_px * n,
             min_disparity_px=self.min_disparity_px * n,
         )
 
@@ -353,6 +361,11 @@ class VoOptions:
         if not 0.0 <= self.init_min_depth_fraction <= 1.0:
             raise EstimationError(
                 f"VoOptions.init_min_depth_fraction is {self.init_min_depth_fraction}; use a fraction in [0, 1]"
+            )
+        if self.border_px < 0 or self.project_margin_px < 0 or not self.polish_huber_px > 0:
+            raise EstimationError(
+                f"VoOptions.border_px={self.border_px}, project_margin_px={self.project_margin_px}, "
+                f"polish_huber_px={self.polish_huber_px}; use pixels >= 0 and a Huber width > 0 (1 px is typical)"
             )
         if self.depth_sigma_per_m2 < 0 or not self.track_sigma_px > 0:
             raise EstimationError(

@@ -180,8 +180,9 @@ def test_reproj_err2_equals_numpy(n: int, z_min: float) -> None:
         assert same(_kernels.reproj_err2(X, T, uv, FX, FY, CX, CY, z_min), ref)
 
 
+@pytest.mark.parametrize("margin", [20.0, 7.5])
 @pytest.mark.parametrize("n", SIZES)
-def test_project_equals_numpy(n: int) -> None:
+def test_project_equals_numpy(n: int, margin: float) -> None:
     rng = np.random.default_rng(300 + n)
     for _ in range(10):
         X = _points(rng, n, z_lo=-0.5)
@@ -191,10 +192,10 @@ def test_project_equals_numpy(n: int) -> None:
         z = np.where(front, Xc[:, 2], 1.0)
         u = FX * Xc[:, 0] / z + CX
         v = FY * Xc[:, 1] / z + CY
-        inside = front & (u > -20) & (u < 320 + 20) & (v > -20) & (v < 240 + 20)
+        inside = front & (u > -margin) & (u < 320 + margin) & (v > -margin) & (v < 240 + margin)
         ref = np.empty((n, 2), np.float32)
         ref[:, 0], ref[:, 1] = u, v
-        uv, ins = _kernels.project(X, T, FX, FY, CX, CY, 320.0, 240.0)
+        uv, ins = _kernels.project(X, T, FX, FY, CX, CY, 320.0, 240.0, margin)
         assert uv.dtype == np.float32 and same(uv, ref)
         assert np.array_equal(ins, inside)
 
