@@ -125,15 +125,15 @@ class DisparityOffset:
         w2 = w_noise * w_noise  # squared weights of the (iteratively reweighted, Huber) normal equations
         sigma = 1.0
         try:
-            for _ in range(3):
-                H = (X * w2[:, None]).T @ X
-                theta = np.linalg.solve(H, (X * w2[:, None]).T @ y)
-                r = (y - X @ theta) * w_noise
-                sigma = max(1.4826 * float(np.median(np.abs(r))), 1e-3)
-                a = np.abs(r) / sigma
-                w2 = w_noise * w_noise * np.where(a <= _HUBER, 1.0, _HUBER / np.maximum(a, 1e-12))
-            H = (X * w2[:, None]).T @ X
-            theta = np.linalg.solve(H, (X * w2[:, None]).T @ y)
+            for it in range(4):
+                Xw = X.T * w2
+                H = Xw @ X
+                theta = np.linalg.solve(H, Xw @ y)
+                if it == 3:
+                    break
+                a = np.abs(y - X @ theta) * w_noise
+                sigma = max(1.4826 * float(np.median(a)), 1e-3)
+                w2 = w_noise * w_noise * np.minimum(1.0, _HUBER * sigma / np.maximum(a, 1e-12))
             cov = sigma**2 * np.linalg.inv(H)
             M = np.linalg.inv(cov[3:, 3:])
         except np.linalg.LinAlgError:
