@@ -118,7 +118,7 @@ class DisparityOffset:
             X[rows, 2] = -s * m1[:, k] * d0
             X[rows, 3 + k] = s
             X[rows, 5] = -s * m1[:, k]
-        # Each equation's noise: the tracks' in both frames, the second scaled by Z0 / Z1.
+        # Each equation's noise: the tracks' in both frames, the second's scaled by g = Z1 / Z0.
         rho = np.maximum(d0 + self.offset_px, 1e-3) / self.fb
         g = q[:, 2] + t_prior[2] * rho
         w_noise = np.tile(1.0 / np.sqrt(1.0 + g * g), 2)
