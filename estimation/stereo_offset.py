@@ -5,11 +5,12 @@ A rectified pair whose calibration is slightly off (principal points, or a basel
 of a percent wrong seen as a shift) measures every disparity a fraction of a pixel short or
 long. Near points barely notice; far ones get a depth error that grows with depth squared, and
 the motion fitted to them takes a scale and shape error. ``b`` is observable from the motion:
-between two frames, the depths of near and far points change consistently with one
-translation only under the right ``b``. Each pair of frames gives an estimate of ``b`` jointly
-with the translation (the rotation held at the estimate, which the far points pin down), with
-its information; the running estimate is their information-weighted mean with a zero-mean
-prior (``prior_sigma_px``), so a camera that does not translate keeps ``b = 0``.
+image motion is proportional to inverse depth ``(d + b) / (f B)``, so across near and far points
+its intercept in ``d`` gives ``b``. Each pair of frames (rotation held at the estimate, which the
+far points pin down) is one linear fit of the translation ``t`` and ``c = b t``; the pairs' moments
+of ``b``, corrected for the noise of ``t`` and ``c``, are summed with a zero-mean prior
+(``prior_sigma_px``), so noisy pairs add no bias and a camera that does not translate keeps
+``b = 0`` (docs/estimation-log.md, fifth pass).
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
 
 _HUBER = 2.0
-"""Huber threshold of the joint fit's residuals, in units of each channel's noise."""
+"""Huber threshold of the pair fit's residuals, in units of their robust (MAD) noise."""
 
 
 class DisparityOffset:
@@ -54,15 +55,15 @@ class DisparityOffset:
         self.min_parallax_px = min_parallax_px
         self._T_cur_ref: F64 | None = None  # the motion since the reference observation
         self._prior_info = 1.0 / prior_sigma_px**2
-        self._info = self._prior_info  # information of the estimate (1/px^2)
-        self._sum = 0.0  # information-weighted sum of the per-pair estimates
+        self._num = 0.0  # sum over pairs of t' M c (bias-corrected): b x the information
+        self._den = 0.0  # sum over pairs of t' M t (bias-corrected): the information (1/px^2)
         self._prev: tuple[I64, F64, F64] | None = None
         self.pairs = 0
 
     @property
     def offset_px(self) -> float:
         """The current estimate, px."""
-        b = self._sum / self._info
+        b = self._num / (max(self._den, 0.0) + self._prior_info)
         return float(np.clip(b, -self.max_offset_px, self.max_offset_px))
 
     def forget(self) -> None:
@@ -74,8 +75,7 @@ class DisparityOffset:
         ``und_px``, and the estimated motion since the previous observation (None: unknown).
 
         The pair (reference, this frame) is fitted once the common tracks moved ``min_parallax_px``
-        (with little image motion, track noise biases the fit: docs/estimation-log.md, fourth
-        pass); then this frame becomes the reference."""
+        (median, px; 0: every pair); then this frame becomes the reference."""
         obs = (ids.copy(), und_px.copy(), disparity_px.copy())
         prev = self._prev
         if prev is None or T_cur_prev is None:
@@ -93,80 +93,54 @@ class DisparityOffset:
                 self._T_cur_ref = T_cur_ref  # keep the reference, wait for more motion
                 return
         self._prev, self._T_cur_ref = obs, np.eye(4)
-        est = self._fit(prev[1][ia], prev[2][ia], und_px[ib], disparity_px[ib], T_cur_ref)
-        # A pair that knows the offset less well than the prior (little translation) is skipped.
-        if est is not None and est[1] >= self._prior_info:
-            b, info = est
-            self._sum += info * b
-            self._info += info
+        moments = self._fit(prev[1][ia], prev[2][ia], und_px[ib], T_cur_ref)
+        if moments is not None:
+            self._num += moments[0]
+            self._den += moments[1]
             self.pairs += 1
 
-    def _point_residuals(self, p: F64, R: F64, x0: F64, rho: F64, d0: F64, uv1: F64, d1: F64) -> F64:
-        """(4, N) residuals, px: the disparity in the first frame, the position and disparity in
-        the second, of points at inverse depths ``rho`` (first frame) under translation and offset ``p``."""
-        t, b = p[:3], p[3]
-        X0 = x0 / np.maximum(rho, 1e-6)[:, None]
-        Y = X0 @ R.T + t
-        z1 = np.maximum(Y[:, 2], 1e-3)
-        return np.stack(
-            [
-                self.fb * rho - b - d0,
-                self.fx * Y[:, 0] / z1 + self.cx - uv1[:, 0],
-                self.fy * Y[:, 1] / z1 + self.cy - uv1[:, 1],
-                self.fb / z1 - b - d1,
-            ]
-        )
-
-    def _residuals(self, p: F64, R: F64, x0: F64, d0: F64, uv1: F64, d1: F64, w: F64) -> F64:
-        """Every point's residuals (noise-weighted by ``w``, 4 per point) with its inverse depth
-        fitted (both disparities are measurements: no error-in-variables bias)."""
-        rho = np.maximum(d0 + p[3], 1e-3) / self.fb
-        for _ in range(2):
-            r = self._point_residuals(p, R, x0, rho, d0, uv1, d1) * w[:, None]
-            h = 1e-4 * rho
-            J = (self._point_residuals(p, R, x0, rho + h, d0, uv1, d1) * w[:, None] - r) / h
-            rho = np.maximum(rho - np.einsum("kn,kn->n", J, r) / np.maximum(np.einsum("kn,kn->n", J, J), 1e-12), 1e-6)
-        out: F64 = (self._point_residuals(p, R, x0, rho, d0, uv1, d1) * w[:, None]).ravel()
-        return out
-
-    def _fit(self, uv0: F64, d0: F64, uv1: F64, d1: F64, T_cur_prev: F64) -> tuple[float, float] | None:
-        """Gauss-Newton (Huber) on the translation and the offset, each point's inverse depth
-        eliminated, each channel weighted by its robust noise level; returns (offset, information)."""
+    def _fit(self, uv0: F64, d0: F64, uv1: F64, T_cur_ref: F64) -> tuple[float, float] | None:
+        """One pair's moments of the offset: (t' M c - E[noise], t' M t - E[noise]) from the linear
+        fit of ``t`` and ``c = b t`` (``M``: the information of ``c``), each unbiased in expectation."""
         n = len(uv0)
-        x0 = np.c_[(uv0[:, 0] - self.cx) / self.fx, (uv0[:, 1] - self.cy) / self.fy, np.ones(n)]
-        R = T_cur_prev[:3, :3]
-        p = np.r_[T_cur_prev[:3, 3], self.offset_px]
-        ones = np.ones(4)
-        r = self._residuals(p, R, x0, d0, uv1, d1, ones).reshape(4, n)
-        # Noise of each channel (MAD; at least 0.05 px): residuals in units of it.
-        s_uv = max(1.4826 * float(np.median(np.abs(r[1:3]))), 0.05)
-        s_d = max(1.4826 * float(np.median(np.abs(r[[0, 3]]))), 0.05)
-        w = np.array([1.0 / s_d, 1.0 / s_uv, 1.0 / s_uv, 1.0 / s_d])
-        steps = np.array([1e-4, 1e-4, 1e-4, 1e-3])
-        H = np.eye(4)
-        r = self._residuals(p, R, x0, d0, uv1, d1, w)
-        for _ in range(3):
-            J = np.empty((len(r), 4))
-            for k in range(4):
-                dp = np.zeros(4)
-                dp[k] = steps[k]
-                J[:, k] = (self._residuals(p + dp, R, x0, d0, uv1, d1, w) - r) / steps[k]
-            a = np.abs(r)
-            hw = np.where(a <= _HUBER, 1.0, _HUBER / np.maximum(a, 1e-12))
-            H = J.T @ (J * hw[:, None])
-            g = J.T @ (hw * r)
-            try:
-                delta = -np.linalg.solve(H + 1e-9 * np.eye(4), g)
-            except np.linalg.LinAlgError:
-                return None
-            p = p + delta
-            r = self._residuals(p, R, x0, d0, uv1, d1, w)
-            if abs(delta[3]) < 1e-4 and np.linalg.norm(delta[:3]) < 1e-6:
-                break
+        R, t_prior = T_cur_ref[:3, :3], T_cur_ref[:3, 3]
+        q = np.c_[(uv0[:, 0] - self.cx) / self.fx, (uv0[:, 1] - self.cy) / self.fy, np.ones(n)] @ R.T
+        m1 = np.c_[(uv1[:, 0] - self.cx) / self.fx, (uv1[:, 1] - self.cy) / self.fy]
+        # Rigid motion at inverse depth rho = (d0 + b) / fb, exactly:
+        #   m1 (q_z + t_z rho) - q_xy = (t_xy - m1 t_z) rho, linear in (t, c = b t).
+        f = np.array([self.fx, self.fy])
+        y = ((m1 * q[:, 2:3] - q[:, :2]) * f).T.ravel()  # px; x equations then y equations
+        X = np.zeros((2 * n, 6))
+        for k in range(2):
+            rows = slice(k * n, (k + 1) * n)
+            s = f[k] / self.fb
+            X[rows, k] = s * d0
+            X[rows, 2] = -s * m1[:, k] * d0
+            X[rows, 3 + k] = s
+            X[rows, 5] = -s * m1[:, k]
+        # Each equation's noise: the tracks' in both frames, the second's scaled by g = Z1 / Z0.
+        rho = np.maximum(d0 + self.offset_px, 1e-3) / self.fb
+        g = q[:, 2] + t_prior[2] * rho
+        w_noise = np.tile(1.0 / np.sqrt(1.0 + g * g), 2)
+        w2 = w_noise * w_noise  # squared weights of the (iteratively reweighted, Huber) normal equations
+        sigma = 1.0
         try:
-            var_bb = float(np.linalg.inv(H)[3, 3])  # residuals are in units of their noise
+            for it in range(4):
+                Xw = X.T * w2
+                H = Xw @ X
+                theta = np.linalg.solve(H, Xw @ y)
+                if it == 3:
+                    break
+                a = np.abs(y - X @ theta) * w_noise
+                sigma = max(1.4826 * float(np.median(a)), 1e-3)
+                w2 = w_noise * w_noise * np.minimum(1.0, _HUBER * sigma / np.maximum(a, 1e-12))
+            cov = sigma**2 * np.linalg.inv(H)
+            M = np.linalg.inv(cov[3:, 3:])
         except np.linalg.LinAlgError:
             return None
-        if not np.isfinite(p[3]) or not var_bb > 0 or abs(p[3]) > 3 * self.max_offset_px:
+        t, c = theta[:3], theta[3:]
+        num = float(t @ M @ c - np.sum(M * cov[:3, 3:]))
+        den = float(t @ M @ t - np.sum(M * cov[:3, :3]))
+        if not (np.isfinite(num) and np.isfinite(den)):
             return None
-        return float(p[3]), 1.0 / var_bb
+        return num, den
