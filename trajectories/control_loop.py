@@ -574,9 +574,14 @@ class ControlLoop:
         self.on_status(Status(self.t_s, phase, lap, laps, pos, self._last_err, rate, action, message))
 
     def rate_estimate(self) -> float:
-        """Control cycles per second of flight time so far."""
-        elapsed = self.t_s
-        return len(self.cycle_s) / elapsed if elapsed > 0 else math.nan
+        """Control cycles per second of controlled time so far: the time inside the phases, not
+        the waits between them (connecting, arming, the autopilot's own lift-off)."""
+        phases = self.summary.phases
+        controlled_s = sum(p.duration_s for p in phases)
+        if controlled_s <= 0:
+            return math.nan
+        # a phase's duration spans its cycles' intervals: one interval fewer than its cycles
+        return max(0, len(self.cycle_s) - len(phases)) / controlled_s
 
     def fill_timing(self, summary: FlightSummary) -> None:
         """Cycle-time percentiles and the loop rate into ``summary``."""

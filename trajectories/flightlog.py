@@ -105,8 +105,8 @@ class FlightSummary:
         phases: statistics per phase, in flight order (repeated phases are merged by name).
         faults: every fault, in order of detection.
         laps_completed: laps of the pattern flown to the end.
-        loop_rate_hz: mean control rate; cycle_p50_ms / cycle_p99_ms: wall time per cycle (from
-            reading the pose to handing the setpoint to the link); cycle_cpu_p50_ms /
+        loop_rate_hz: control cycles per second inside the phases; cycle_p50_ms / cycle_p99_ms:
+            wall time per cycle (from reading the pose to handing the setpoint to the link); cycle_cpu_p50_ms /
             cycle_cpu_p99_ms: the loop thread's CPU time per cycle, i.e. the same without the
             time spent waiting for the GIL, the scheduler or a hypervisor that took the CPU.
         latency_p50_ms / latency_p99_ms: from a mocap sample reaching this process to the setpoint

@@ -187,6 +187,11 @@ def test_circle_tracks_within_bounds_and_looks_inward(autopilot: str, tmp_path: 
     assert 0.0 < summary.cycle_cpu_p50_ms <= summary.cycle_p50_ms
     assert 0.0 < summary.cycle_cpu_p99_ms <= summary.cycle_p99_ms
     assert summary.to_dict()["cycle_cpu_p99_ms"] == pytest.approx(summary.cycle_cpu_p99_ms, abs=1e-4)
+    # the loop rate counts the time inside the phases (a row per cycle), not the waits between them
+    rows = len(read_flight_log(str(tmp_path / f"circle-{autopilot}-pymavlink.csv"))["phase"])
+    inside_s = sum(p.duration_s for p in summary.phases)
+    assert summary.loop_rate_hz == pytest.approx((rows - len(summary.phases)) / inside_s, rel=1e-6)
+    assert summary.loop_rate_hz > 50.0, summary.format_table()  # 100 Hz timer, 120 Hz mocap wakes
     pat = summary.phase("pattern")
     assert 38.0 < pat.duration_s < 45.0  # one 40 s lap (pattern time stands still only while holding)
     assert pat.rms_error_m < RMS_BOUND_M, summary.format_table()
