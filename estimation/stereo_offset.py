@@ -37,9 +37,6 @@ class DisparityOffset:
         max_offset_px: the estimate is clipped to +-this, px.
         min_parallax_px: a pair is fitted once the common tracks moved this far (median, px) since
             the reference observation (0: every pair of consecutive observations).
-        fit: what each pair is fitted to: ``"flow"`` (the image motion: translation and
-            ``b`` x translation) or ``"disparity"`` (the disparity change along the depth motion
-            alone, no horizontal track in it).
     """
 
     def __init__(
@@ -52,12 +49,10 @@ class DisparityOffset:
         prior_sigma_px: float = 0.5,
         max_offset_px: float = 1.0,
         min_parallax_px: float = 0.0,
-        fit: str = "flow",
     ) -> None:
         self.fx, self.fy, self.cx, self.cy, self.fb = fx, fy, cx, cy, fx * baseline_m
         self.max_offset_px = max_offset_px
         self.min_parallax_px = min_parallax_px
-        self.fit = fit
         self._T_cur_ref: F64 | None = None  # the motion since the reference observation
         self._prior_info = 1.0 / prior_sigma_px**2
         self._num = 0.0  # sum over pairs of t' M c (bias-corrected): b x the information
@@ -98,10 +93,7 @@ class DisparityOffset:
                 self._T_cur_ref = T_cur_ref  # keep the reference, wait for more motion
                 return
         self._prev, self._T_cur_ref = obs, np.eye(4)
-        if self.fit == "disparity":
-            moments = self._fit_disparity(prev[1][ia], prev[2][ia], disparity_px[ib], T_cur_ref)
-        else:
-            moments = self._fit(prev[1][ia], prev[2][ia], und_px[ib], T_cur_ref)
+        moments = self._fit(prev[1][ia], prev[2][ia], und_px[ib], T_cur_ref)
         if moments is not None:
             self._num += moments[0]
             self._den += moments[1]
@@ -130,49 +122,25 @@ class DisparityOffset:
         rho = np.maximum(d0 + self.offset_px, 1e-3) / self.fb
         g = q[:, 2] + t_prior[2] * rho
         w_noise = np.tile(1.0 / np.sqrt(1.0 + g * g), 2)
-        return _moments(X, y, w_noise, 3)
-
-    def _fit_disparity(self, uv0: F64, d0: F64, d1: F64, T_cur_ref: F64) -> tuple[float, float] | None:
-        """One pair's moments of the offset from the disparity change alone: the fit of
-        ``tau = t_z / (f B)`` and ``c = b tau`` (the horizontal tracks do not enter)."""
-        n = len(uv0)
-        R, t_prior = T_cur_ref[:3, :3], T_cur_ref[:3, 3]
-        qz = np.c_[(uv0[:, 0] - self.cx) / self.fx, (uv0[:, 1] - self.cy) / self.fy, np.ones(n)] @ R[2]
-        b = self.offset_px
-        # Depth along the motion, Z1 = qz Z0 + t_z at Z = fB / (d + b), is exactly
-        #   d0 - qz d1 + b (1 - qz) = tau d0 d1 + c (d0 + d1 + b):  linear in (tau, c), b held in
-        # the small terms at the current estimate.
-        y = d0 - qz * d1 + b * (1.0 - qz)
-        X = np.c_[d0 * d1, d0 + d1 + b]
-        # Each equation's noise from the two disparities (equal noise), at the motion's prior.
-        tau, c = t_prior[2] / self.fb, t_prior[2] / self.fb * b
-        w_noise = 1.0 / np.sqrt((1.0 - tau * d1 - c) ** 2 + (qz + tau * d0 + c) ** 2)
-        return _moments(X, y, w_noise, 1)
-
-
-def _moments(X: F64, y: F64, w_noise: F64, k: int) -> tuple[float, float] | None:
-    """The moments (t' M c - E[noise], t' M t - E[noise]) of the Huber-weighted least-squares fit of
-    ``y = X theta``, ``theta = (t, c = b t)`` with ``k`` entries in ``t`` (``M``: the information of
-    ``c``; ``w_noise``: each equation's noise weight), each unbiased in expectation."""
-    w2 = w_noise * w_noise  # squared weights of the (iteratively reweighted, Huber) normal equations
-    sigma = 1.0
-    try:
-        for it in range(4):
-            Xw = X.T * w2
-            H = Xw @ X
-            theta = np.linalg.solve(H, Xw @ y)
-            if it == 3:
-                break
-            a = np.abs(y - X @ theta) * w_noise
-            sigma = max(1.4826 * float(np.median(a)), 1e-3)
-            w2 = w_noise * w_noise * np.minimum(1.0, _HUBER * sigma / np.maximum(a, 1e-12))
-        cov = sigma**2 * np.linalg.inv(H)
-        M = np.linalg.inv(cov[k:, k:])
-    except np.linalg.LinAlgError:
-        return None
-    t, c = theta[:k], theta[k:]
-    num = float(t @ M @ c - np.sum(M * cov[:k, k:]))
-    den = float(t @ M @ t - np.sum(M * cov[:k, :k]))
-    if not (np.isfinite(num) and np.isfinite(den)):
-        return None
-    return num, den
+        w2 = w_noise * w_noise  # squared weights of the (iteratively reweighted, Huber) normal equations
+        sigma = 1.0
+        try:
+            for it in range(4):
+                Xw = X.T * w2
+                H = Xw @ X
+                theta = np.linalg.solve(H, Xw @ y)
+                if it == 3:
+                    break
+                a = np.abs(y - X @ theta) * w_noise
+                sigma = max(1.4826 * float(np.median(a)), 1e-3)
+                w2 = w_noise * w_noise * np.minimum(1.0, _HUBER * sigma / np.maximum(a, 1e-12))
+            cov = sigma**2 * np.linalg.inv(H)
+            M = np.linalg.inv(cov[3:, 3:])
+        except np.linalg.LinAlgError:
+            return None
+        t, c = theta[:3], theta[3:]
+        num = float(t @ M @ c - np.sum(M * cov[:3, 3:]))
+        den = float(t @ M @ t - np.sum(M * cov[:3, :3]))
+        if not (np.isfinite(num) and np.isfinite(den)):
+            return None
+        return num, den
