@@ -86,8 +86,9 @@ class Status:
         extra = f"  {self.message}" if self.message else ""
         act = "" if self.action == "CONTINUE" else f"  [{self.action}]"
         return (
-            f"t={self.t_s:7.2f}s  {self.phase:<10} {lap}  pos {p}  err {self.err_m:6.3f} m  "
-            f"{self.rate_hz:5.0f} Hz{act}{extra}"
+            f"t={self.t_s:7.2f}s  {self.phase:<10} {lap}  pos {p}  "
+            f"err {'   ---' if math.isnan(self.err_m) else f'{self.err_m:6.3f}'} m  "
+            f"{'  ---' if math.isnan(self.rate_hz) else f'{self.rate_hz:5.0f}'} Hz{act}{extra}"
         )
 
 
