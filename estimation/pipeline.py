@@ -183,9 +183,7 @@ class VisualOdometry:
             self._estimator = keyframe_estimator(self.method, self.geo, self.polisher, o, self.path_counts, self.rng)
         rig = self.geo.rig
         self.offset = (
-            DisparityOffset(
-                rig.fx, rig.fy, rig.cx, rig.cy, rig.baseline_m, min_parallax_px=o.stereo_offset_parallax_px
-            )
+            DisparityOffset(rig.fx, rig.fy, rig.cx, rig.cy, rig.baseline_m)
             if stereo and rig is not None and o.stereo_offset
             else None
         )

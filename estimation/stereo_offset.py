@@ -35,8 +35,6 @@ class DisparityOffset:
         baseline_m: the stereo baseline, m.
         prior_sigma_px: standard deviation of the zero-mean prior on the offset, px.
         max_offset_px: the estimate is clipped to +-this, px.
-        min_parallax_px: a pair is fitted once the common tracks moved this far (median, px) since
-            the reference observation (0: every pair of consecutive observations).
     """
 
     def __init__(
@@ -48,12 +46,9 @@ class DisparityOffset:
         baseline_m: float,
         prior_sigma_px: float = 0.5,
         max_offset_px: float = 1.0,
-        min_parallax_px: float = 0.0,
     ) -> None:
         self.fx, self.fy, self.cx, self.cy, self.fb = fx, fy, cx, cy, fx * baseline_m
         self.max_offset_px = max_offset_px
-        self.min_parallax_px = min_parallax_px
-        self._T_cur_ref: F64 | None = None  # the motion since the reference observation
         self._prior_info = 1.0 / prior_sigma_px**2
         self._num = 0.0  # sum over pairs of t' M c (bias-corrected): b x the information
         self._den = 0.0  # sum over pairs of t' M t (bias-corrected): the information (1/px^2)
@@ -72,28 +67,16 @@ class DisparityOffset:
 
     def observe(self, ids: I64, und_px: F64, disparity_px: F64, T_cur_prev: F64 | None) -> None:
         """This frame's raw disparities (no offset) of the tracks ``ids`` at undistorted pixels
-        ``und_px``, and the estimated motion since the previous observation (None: unknown).
-
-        The pair (reference, this frame) is fitted once the common tracks moved ``min_parallax_px``
-        (median, px; 0: every pair); then this frame becomes the reference."""
+        ``und_px``, and the estimated motion since the previous observation (None: unknown); the
+        pair (previous, this frame) is fitted."""
         obs = (ids.copy(), und_px.copy(), disparity_px.copy())
-        prev = self._prev
+        prev, self._prev = self._prev, obs
         if prev is None or T_cur_prev is None:
-            self._prev, self._T_cur_ref = obs, np.eye(4)
             return
-        assert self._T_cur_ref is not None
-        T_cur_ref = T_cur_prev @ self._T_cur_ref
         common, ia, ib = np.intersect1d(prev[0], ids, assume_unique=True, return_indices=True)
         if len(common) < 20:
-            self._prev, self._T_cur_ref = obs, np.eye(4)
             return
-        if self.min_parallax_px > 0:
-            moved = float(np.median(np.linalg.norm(und_px[ib] - prev[1][ia], axis=1)))
-            if moved < self.min_parallax_px:
-                self._T_cur_ref = T_cur_ref  # keep the reference, wait for more motion
-                return
-        self._prev, self._T_cur_ref = obs, np.eye(4)
-        moments = self._fit(prev[1][ia], prev[2][ia], und_px[ib], T_cur_ref)
+        moments = self._fit(prev[1][ia], prev[2][ia], und_px[ib], T_cur_prev)
         if moments is not None:
             self._num += moments[0]
             self._den += moments[1]

@@ -244,8 +244,6 @@ class VoOptions:
         stereo_fb_check: also check left-right stereo matches right-to-left.
         stereo_offset: stereo: estimate the pair's disparity offset online (``estimation.stereo_offset``; off:
             see docs/estimation-log.md).
-        stereo_offset_parallax_px: the offset's fit waits until the tracks moved this far since its reference
-            frame, px (0: every pair of frames).
         orb_fallback: match ORB against the keyframe when tracking fails (``FALLBACK``).
         keyframes: the keyframe policy (:class:`~estimation.keyframes.KeyframePolicy`).
         ba_window: local bundle adjustment over this many keyframes (0: off).
@@ -284,7 +282,6 @@ class VoOptions:
     fuse_depth: bool = True
     stereo_fb_check: bool = False
     stereo_offset: bool = False
-    stereo_offset_parallax_px: float = 0.0
     orb_fallback: bool = True
     keyframes: KeyframePolicy = field(default_factory=KeyframePolicy)
     ba_window: int = 0
@@ -308,7 +305,6 @@ class VoOptions:
             estimator=est,
             keyframes=replace(kf, max_parallax_px=kf.max_parallax_px * width_px / REF_WIDTH_PX),
             cell_px=round(self.cell_px * s),
-            stereo_offset_parallax_px=self.stereo_offset_parallax_px * s,
             klt_win_px=_odd_window((self.klt_win_px or 11) * s, 9),
             stereo_win_px=_odd_window(self.stereo_win_px * s, 9) if self.stereo_win_px else 0,
             fb_max_px=self.fb_max_px * n,
