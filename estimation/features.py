@@ -19,6 +19,7 @@ except OpenCV's own internals.
 from __future__ import annotations
 
 import logging
+import operator
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, cast
@@ -27,6 +28,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from estimation._grid_kernel import grid_select
 from flightkit.errors import EstimationError
 
 __all__ = ["DescriptorExtractor", "Features", "GridDetector", "as_gray", "shi_tomasi"]
@@ -35,6 +37,8 @@ logger = logging.getLogger(__name__)
 
 Points2 = npt.NDArray[np.float32]
 """Pixel positions, shape (N, 2), float32."""
+
+_RESPONSE = operator.attrgetter("response")
 
 
 def as_gray(image: npt.NDArray[np.integer[Any] | np.floating[Any]]) -> npt.NDArray[np.uint8]:
@@ -117,37 +121,18 @@ class GridDetector:
         if not kps:
             return np.empty((0, 2), np.float32)
         pts = np.asarray(cv2.KeyPoint.convert(kps), np.float32).reshape(-1, 2)
-        resp = np.fromiter((k.response for k in kps), dtype=np.float32, count=len(kps))
-        b = self.border_px
-        keep: npt.NDArray[np.bool_] = (pts[:, 0] >= b) & (pts[:, 0] < w - b) & (pts[:, 1] >= b) & (pts[:, 1] < h - b)
-        pts, resp = pts[keep], resp[keep]
-        if len(pts) == 0:
-            return pts
+        resp = np.fromiter(map(_RESPONSE, kps), dtype=np.float32, count=len(kps))
         cs = self.cell_px
         ncx = (w + cs - 1) // cs
         ncy = (h + cs - 1) // cs
-        ncell = ncx * ncy
-        cell = (pts[:, 1] // cs).astype(np.int32) * ncx + (pts[:, 0] // cs).astype(np.int32)
-        occupied = np.zeros(ncell, dtype=bool)
+        occupied = np.zeros(ncx * ncy, dtype=bool)
         if existing is not None and len(existing):
             ex = np.asarray(existing, np.float32)
             ecx = np.clip((ex[:, 0] // cs).astype(np.int32), 0, ncx - 1)
             ecy = np.clip((ex[:, 1] // cs).astype(np.int32), 0, ncy - 1)
             occupied[ecy * ncx + ecx] = True
-        free = ~occupied[cell]
-        pts, resp, cell = pts[free], resp[free], cell[free]
-        if len(pts) == 0:
-            return np.empty((0, 2), np.float32)
-        n_free_cells = max(1, int(np.count_nonzero(~occupied)))
-        per_cell = max(1, int(np.ceil(budget / n_free_cells)))
-        # Sort by (cell, -response), then keep the first per_cell of each cell.
-        order = np.lexsort((-resp, cell))
-        cell_sorted = cell[order]
-        starts = np.r_[0, np.flatnonzero(np.diff(cell_sorted)) + 1]
-        rank = np.arange(len(order)) - np.repeat(starts, np.diff(np.r_[starts, len(order)]))
-        chosen = order[rank < per_cell]
-        if len(chosen) > budget:
-            chosen = chosen[np.argsort(-resp[chosen], kind="stable")[:budget]]
+        # Inside the border, in free cells, the strongest few of each cell (one compiled loop).
+        chosen = grid_select(pts, resp, occupied, cs, ncx, self.border_px, w, h, budget)
         return np.ascontiguousarray(pts[chosen])
 
 

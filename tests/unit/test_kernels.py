@@ -414,3 +414,44 @@ def test_warm_up_runs_each_method_through_its_estimation_path(method: str) -> No
     # The texture moves 2 px a frame at 250 px focal length and ~2 m: 16 mm a frame, 64 mm in all.
     assert float(np.linalg.norm(poses[-1].T_world_camera[:3, 3])) == pytest.approx(0.064, rel=0.1)
     assert _kernels.pose_gauss_newton.signatures and _kernels.project.signatures  # loaded, ready for live frames
+
+
+def _grid_select_numpy(
+    pts: np.ndarray, resp: np.ndarray, occupied: np.ndarray, cs: int, ncx: int, b: int, w: int, h: int, budget: int
+) -> np.ndarray:
+    """GridDetector's corner choice as numpy code (what ``_grid_kernel.grid_select`` replaced)."""
+    keep = (pts[:, 0] >= b) & (pts[:, 0] < w - b) & (pts[:, 1] >= b) & (pts[:, 1] < h - b)
+    pts, resp = pts[keep], resp[keep]
+    if len(pts) == 0:
+        return pts
+    cell = (pts[:, 1] // cs).astype(np.int32) * ncx + (pts[:, 0] // cs).astype(np.int32)
+    free = ~occupied[cell]
+    pts, resp, cell = pts[free], resp[free], cell[free]
+    if len(pts) == 0:
+        return np.empty((0, 2), np.float32)
+    per_cell = max(1, int(np.ceil(budget / max(1, int(np.count_nonzero(~occupied))))))
+    order = np.lexsort((-resp, cell))
+    cell_sorted = cell[order]
+    starts = np.r_[0, np.flatnonzero(np.diff(cell_sorted)) + 1]
+    rank = np.arange(len(order)) - np.repeat(starts, np.diff(np.r_[starts, len(order)]))
+    chosen = order[rank < per_cell]
+    if len(chosen) > budget:
+        chosen = chosen[np.argsort(-resp[chosen], kind="stable")[:budget]]
+    return np.ascontiguousarray(pts[chosen])
+
+
+@pytest.mark.parametrize("budget", [1, 7, 40, 150, 300, 2000])
+def test_grid_select_equals_numpy(budget: int) -> None:
+    """The same corners in the same order, ties in strength included (FAST scores are integers)."""
+    from estimation._grid_kernel import grid_select
+
+    rng = np.random.default_rng(budget)
+    w, h, cs, b = 640, 480, 35, 8
+    ncx, ncy = (w + cs - 1) // cs, (h + cs - 1) // cs
+    for n in (0, 1, 5, 300, 1500):
+        pts = np.c_[rng.integers(0, w, n), rng.integers(0, h, n)].astype(np.float32)
+        resp = rng.integers(20, 40, n).astype(np.float32)  # many ties
+        occupied = rng.random(ncx * ncy) < rng.uniform(0.0, 0.9)
+        got = pts[grid_select(pts, resp, occupied, cs, ncx, b, w, h, budget)]
+        want = _grid_select_numpy(pts, resp, occupied, cs, ncx, b, w, h, budget)
+        assert got.shape == want.shape and np.array_equal(got, want)
