@@ -34,6 +34,7 @@ import numpy.typing as npt
 
 from estimation import _kernels
 from estimation.evaluation import umeyama
+from estimation.five_point import find_essential
 from flightkit.errors import EstimationError
 
 __all__ = [
@@ -615,14 +616,11 @@ def essential_metric(
     n = len(p0)
     if n < max(8, min_inliers):
         return _failed(n)
-    try:
-        E, emask = cv2.findEssentialMat(p0, p1, Km, method=cv2.RANSAC, prob=confidence, threshold=threshold_px)
-    except cv2.error as exc:
-        logger.debug("findEssentialMat failed: %s", exc)
+    # OpenCV's findEssentialMat (RANSAC) with the same samples, compiled (estimation.five_point).
+    E, inl = find_essential(p0, p1, Km, threshold_px, confidence)
+    if E is None:
         return _failed(n)
-    if E is None or emask is None:
-        return _failed(n)
-    E = E[:3]
+    emask = inl.astype(np.uint8).reshape(-1, 1)
     if cheirality == "depth":
         m = pose_from_essential(E, p1, X, Km, emask.ravel() > 0, agree_px)
         return m if m is not None and m.n_inliers >= min_inliers else _failed(n)
