@@ -21,7 +21,8 @@ from estimation import _kernels
 from estimation.features import DescriptorExtractor, Features, GridDetector
 from estimation.flow import track_klt
 from estimation.matching import match_descriptors, match_stereo_rows
-from estimation.motion import Motion, invert, pnp
+from estimation.motion import Motion, invert
+from estimation.pnp import pnp
 from estimation.stereo import StereoRig, sparse_disparity, triangulate
 from estimation.vo_options import VoOptions
 from flightkit.errors import EstimationError

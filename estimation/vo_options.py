@@ -235,7 +235,7 @@ class VoOptions:
         min_disparity_px: stereo points with a smaller disparity are not used, px (the matching noise floor).
         far_points: stereo points beyond the depth cap or minimum disparity: ``"drop"`` them, keep them
             for the ``"rotation"`` only, or keep them with a say in the translation ``"weighted"`` by cap / depth.
-        refine_with_depth: polish poses on the current frame's depth too (``motion.refine_pose``).
+        refine_with_depth: polish poses on the current frame's depth too (``pnp.refine_pose``).
         depth_sigma_per_m2: depth images' noise: sigma_z = this x z^2 (Kinect v1: 1.425e-3 /m,
             Khoshelham & Elberink 2012); weighs registered depth in the polish (0: the fixed 0.1 m weight).
         track_sigma_px: the tracks' pixel noise the depth residuals are weighed against, px.
