@@ -31,11 +31,11 @@ from types import TracebackType
 from typing import Any, Self
 
 from flightkit.clock import Clock, WallClock
-from flightkit.config import setting
 from flightkit.errors import DatasetError, ProtocolError
 from flightkit.frames import Transform, WorldFrames
 from flightkit.lifetime import Running
 from flightkit.mocap.base import MocapSource
+from flightkit.settings import setting
 
 from .endpoints import RobotEndpoint
 from .link_session import Connected, LinkLost, NavOrderReceived, PeerGoodbye, SessionConfig, SessionStats
