@@ -79,12 +79,16 @@ class KeyframeStore:
             if kf is current or not len(kf.X):
                 continue
             T_cur_kf = T_cur_world @ kf.T_world_kf
+            depth_m = median(kf.X[:, 2])
+            # The policy's motion limits first (no parallax, every point in view): cheap.
+            if policy.decide(0.0, len(kf.X), len(kf.X), T_cur_kf, 0, depth_m).new_keyframe:
+                continue
             px, vis = geo.project(T_cur_kf, kf.X)
             if not vis.any():
                 continue
             par = np.linalg.norm(px[vis] - kf.px[vis], axis=1)
             n_vis = int(np.count_nonzero(vis))
-            if policy.decide(par, n_vis, len(kf.X), T_cur_kf, 0, median(kf.X[:, 2])).new_keyframe:
+            if policy.decide(par, n_vis, len(kf.X), T_cur_kf, 0, depth_m).new_keyframe:
                 continue
             m = median(par)
             if m < best_par:
