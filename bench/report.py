@@ -18,7 +18,8 @@ import tempfile
 import threading
 import time
 
-from estimation.report.link_session import PoseReceived, RobotEndpoint, SegmentReceived, ServerEndpoint
+from estimation.report.endpoints import RobotEndpoint, ServerEndpoint
+from estimation.report.link_session import PoseReceived, SegmentReceived
 from estimation.report.messages import PoseUpdate, Segment, encode_pose
 from estimation.report.protocol import Frame, encode_frame
 from estimation.report.relay import Faults, PtyRelay

@@ -63,7 +63,7 @@ from flightkit.datasets.registry import open_sequence  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
-RGBD = ["rgbd-pnp", "rgbd-essential", "rgbd-kabsch", "flow"]
+RGBD = ["rgbd-pnp", "rgbd-essential", "rgbd-kabsch", "rgbd-kabsch@revisit", "flow"]
 STEREO = ["stereo", "stereo@far", "stereo@offset"]
 SEQUENCES: dict[str, tuple[str, list[str], str]] = {
     # key: (folder, flightkit methods, plain baseline)
@@ -82,6 +82,7 @@ VARIANTS: dict[str, VoOptions] = {
     "offset": VoOptions(stereo_offset=True),  # stereo with the disparity offset estimated online
     "far": VoOptions(far_points="weighted"),  # stereo keeping the points beyond the depth cap, mostly for the rotation
     "far+offset": VoOptions(far_points="weighted", stereo_offset=True),
+    "revisit": VoOptions(revisit_keyframes=30),  # RGB-D returning to kept keyframes the camera sees again
 }
 """Row-name suffixes (``method@variant``) and their options."""
 

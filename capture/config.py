@@ -15,7 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from flightkit.bus.streams import CameraStreamSelection
-from flightkit.config import setting
+from flightkit.settings import setting
 
 __all__ = ["CaptureConfig"]
 

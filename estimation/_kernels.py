@@ -3,7 +3,7 @@
 The per-frame work of the keyframe pipelines is a handful of small loops over ~200 tracked
 points: transform, project, residuals, Huber weights, Jacobian rows, depth lookups. Written
 as numpy expressions they are dozens of calls of 2-20 us each per frame; here each is one
-compiled loop. The callers (``estimation.motion``, ``estimation.pipeline``) keep their
+compiled loop. The callers (``estimation.pnp``, ``estimation.essential``, ``estimation.pipeline``) keep their
 signatures; only their bodies call these.
 
 Exactness: every kernel reproduces the arithmetic of the numpy code it replaced, operation
@@ -145,7 +145,7 @@ def pose_gauss_newton(
     stop: float,
     dof: int,
 ) -> F64:
-    """The whole Gauss-Newton loop of ``estimation.motion.refine_pose``.
+    """The whole Gauss-Newton loop of ``estimation.pnp.refine_pose``.
 
     Per step and point ``i`` of ``X`` (reference frame) seen at ``uv[i]``: the u and v
     reprojection residuals and, where ``disp[i]`` is a number, the disparity residual
@@ -369,7 +369,7 @@ def sampson_distance(R: Any, t: Any, x_ref: Any, x_cur: Any, f_px: float, signed
 def sampson_jacobian(R: Any, t: Any, x_ref: Any, x_cur: Any, f_px: float, J: Any) -> F64:
     """Signed Sampson residuals (px) of (N, 3) ray pairs under ``(R, t)`` and, into ``J``
     (N, 6), their Jacobian in a left rotation increment and a translation increment (the
-    formulas of ``estimation.motion._sampson_jacobian``, term by term)."""
+    formulas of ``estimation.essential._sampson_jacobian``, term by term)."""
     r00, r01, r02 = R[0, 0], R[0, 1], R[0, 2]
     r10, r11, r12 = R[1, 0], R[1, 1], R[1, 2]
     r20, r21, r22 = R[2, 0], R[2, 1], R[2, 2]

@@ -24,19 +24,12 @@ from typing import Protocol
 import numpy as np
 import numpy.typing as npt
 
+from estimation.essential import essential_from_prior, essential_metric
 from estimation.frontend import CameraGeometry
-from estimation.motion import (
-    Motion,
-    essential_from_prior,
-    essential_metric,
-    median,
-    pnp,
-    ransac_rigid,
-    refine_pose,
-    rigid_from_prior,
-    rigidity_inliers,
-)
+from estimation.motion import Motion, median
+from estimation.pnp import pnp, refine_pose
 from estimation.polish import PosePolisher
+from estimation.rigid import ransac_rigid, rigid_from_prior, rigidity_inliers
 from estimation.vo_options import EssentialOptions, KabschOptions, Method, PnpOptions, VoOptions
 
 __all__ = [

@@ -166,7 +166,7 @@ def umeyama(
     """Least-squares ``(R, t, s)`` with ``dst ~ s R src + t`` (Umeyama 1991), points (N, 3).
 
     The one implementation in flightkit: the trajectory alignment here and the VO's rigid fits
-    (:mod:`estimation.motion`, which re-exports it) use it. R is a proper rotation (det +1),
+    (:mod:`estimation.rigid`, which re-exports it) use it. R is a proper rotation (det +1),
     s = 1.0 without ``with_scale``.
 
     Raises:

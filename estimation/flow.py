@@ -37,7 +37,8 @@ import numpy.typing as npt
 from estimation import _kernels
 from estimation.features import DescriptorExtractor
 from estimation.matching import match_stereo_rows
-from estimation.motion import invert, make_T, refine_pose
+from estimation.motion import invert, make_T
+from estimation.pnp import refine_pose
 
 __all__ = [
     "integrate_velocity",

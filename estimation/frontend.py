@@ -21,7 +21,9 @@ from estimation import _kernels
 from estimation.features import DescriptorExtractor, Features, GridDetector
 from estimation.flow import track_klt
 from estimation.matching import match_descriptors, match_stereo_rows
-from estimation.motion import Motion, invert, pnp
+from estimation.motion import Motion, invert
+from estimation.pnp import pnp
+from estimation.revisit import StoredKeyframe
 from estimation.stereo import StereoRig, sparse_disparity, triangulate
 from estimation.vo_options import VoOptions
 from flightkit.errors import EstimationError
@@ -376,6 +378,50 @@ class FrontEnd:
         self.kf_right = right_gray
         self.kf_depth = depth_m
         self._kf_orb = None
+
+    def snapshot(self) -> StoredKeyframe:
+        """The keyframe as it stands (copies of its point arrays), for a :class:`KeyframeStore`."""
+        return StoredKeyframe(
+            self.T_world_kf.copy(),
+            self.kf_X.copy(),
+            self.kf_px.copy(),
+            self.kf_ids.copy(),
+            self.kf_w.copy(),
+            self.kf_gray if self.kf_gray is not None else np.zeros((1, 1), np.uint8),
+            self.kf_right,
+            self.kf_depth,
+        )
+
+    def restore(self, kf: StoredKeyframe, gray: U8, T_world_cam: F64) -> bool:
+        """Return to a kept keyframe: track its points from its image into ``gray`` (LK from their
+        projection at ``T_world_cam``, forward-backward checked) and make it the keyframe if at
+        least the keyframe policy's share and count of them are tracked; else change nothing."""
+        o, g = self.opts, self.geo
+        guess, vis = g.project(invert(T_world_cam) @ kf.T_world_kf, kf.X)
+        px, ok = track_klt(
+            kf.gray,
+            gray,
+            kf.px,
+            o.fb_max_px,
+            g.klt_win,
+            g.klt_levels,
+            guess=np.where(vis[:, None], guess, kf.px),
+            back_levels=g.klt_levels,
+            max_iters=o.klt_iters,
+        )
+        h, w = gray.shape
+        ok &= vis & (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
+        policy = o.keyframes
+        n_ok = int(np.count_nonzero(ok))
+        if n_ok < max(policy.min_tracked, policy.min_tracked_fraction * len(kf.X)):
+            return False
+        self.kf_X, self.kf_px, self.kf_ids, self.kf_w = kf.X[ok], kf.px[ok], kf.ids[ok], kf.w[ok]
+        self.trk_px = np.ascontiguousarray(px[ok])
+        self.kf_n0 = len(kf.X)
+        self.T_world_kf = kf.T_world_kf.copy()
+        self.kf_gray, self.kf_right, self.kf_depth = kf.gray, kf.right, kf.depth
+        self._kf_orb = None
+        return True
 
     def fuse(self, gidx: npt.NDArray[np.intp], X_cur: F64, T_cur_kf: F64) -> None:
         """Fuse current-frame 3D measurements of keyframe points into ``kf_X`` (inverse variance)."""

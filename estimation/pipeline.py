@@ -68,6 +68,7 @@ from estimation.local_ba import LocalBundleWindow
 from estimation.motion import Motion, invert, median
 from estimation.polish import Meas, PosePolisher
 from estimation.pose_track import PoseTrack
+from estimation.revisit import KeyframeStore, StoredKeyframe
 from estimation.stereo_offset import DisparityOffset
 from estimation.vo_options import (
     EssentialOptions,
@@ -192,6 +193,9 @@ class VisualOdometry:
             if o.ba_window > 1
             else None
         )
+        # Past keyframes to return to (not with local BA, whose window is the last keyframes made).
+        self.store = KeyframeStore(o.revisit_keyframes) if o.revisit_keyframes > 0 and self.ba is None else None
+        self._stored: StoredKeyframe | None = None  # the current keyframe's entry in the store
 
     def _emit(self, stamp_ns: int, n_inl: int, q: Quality, kf: bool, timer: FrameTimer) -> FramePose:
         timer.ms["total"] = sum(v for k, v in timer.ms.items() if k != "total")
@@ -264,9 +268,26 @@ class VisualOdometry:
         self.front.make_keyframe(gray, right_gray, depth_m, self.pose.T_world_cam, X_cur, remeasure)
         self.T_prev_kf = np.eye(4)
         self.kf_since = 0
+        if self.store is not None:
+            self._stored = self.front.snapshot()
+            self.store.add(self._stored)
         if self.ba is not None:
             f = self.front
             self.ba.add_keyframe(f.T_world_kf, f.kf_ids, self.geo.undistort(f.kf_px), f.kf_X)
+
+    def _revisit(self, gray: npt.NDArray[np.uint8]) -> bool:
+        """Instead of a new keyframe, return to a kept one the camera sees again, if any
+        (``VoOptions.revisit_keyframes``); the next frames are measured against it."""
+        if self.store is None:
+            return False
+        T_world_cam = self.pose.T_world_cam
+        kf = self.store.best(T_world_cam, self.geo, self.opts.keyframes, self._stored)
+        if kf is None or not self.front.restore(kf, gray, T_world_cam):
+            return False
+        self._stored = kf
+        self.T_prev_kf = invert(T_world_cam) @ kf.T_world_kf
+        self.kf_since = 0
+        return True
 
     def _observe_offset(self, meas: Meas | None, idx: npt.NDArray[np.intp], T_cur_prev: F64) -> None:
         """Stereo: feed this frame's measured disparities to the disparity-offset estimate."""
@@ -391,7 +412,11 @@ class VisualOdometry:
         depth = median(z_kf) if len(z_kf) else float("inf")
         decision = o.keyframes.decide(parallax, len(front.trk_px), front.kf_n0, T_cur_kf, self.kf_since, depth)
         is_kf = decision.new_keyframe or fallback
-        if is_kf:
+        if is_kf and not fallback and self._revisit(gray):
+            logger.debug("frame %d: back to a kept keyframe (%s)", self.index, decision.reason)
+            is_kf = False
+            timer.lap("keyframe")
+        elif is_kf:
             X_cur = front.kf_X @ T_cur_kf[:3, :3].T + T_cur_kf[:3, 3]
             self._new_keyframe(gray, right_gray, depth_m, X_cur, remeasure=not fused)
             logger.debug(

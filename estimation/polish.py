@@ -15,7 +15,8 @@ import numpy as np
 import numpy.typing as npt
 
 from estimation.frontend import CameraGeometry
-from estimation.motion import Motion, make_T, refine_pose
+from estimation.motion import Motion, make_T
+from estimation.pnp import refine_pose
 from estimation.stereo import sparse_disparity
 from estimation.vo_options import VoOptions
 

@@ -235,7 +235,7 @@ class VoOptions:
         min_disparity_px: stereo points with a smaller disparity are not used, px (the matching noise floor).
         far_points: stereo points beyond the depth cap or minimum disparity: ``"drop"`` them, keep them
             for the ``"rotation"`` only, or keep them with a say in the translation ``"weighted"`` by cap / depth.
-        refine_with_depth: polish poses on the current frame's depth too (``motion.refine_pose``).
+        refine_with_depth: polish poses on the current frame's depth too (``pnp.refine_pose``).
         depth_sigma_per_m2: depth images' noise: sigma_z = this x z^2 (Kinect v1: 1.425e-3 /m,
             Khoshelham & Elberink 2012); weighs registered depth in the polish (0: the fixed 0.1 m weight).
         track_sigma_px: the tracks' pixel noise the depth residuals are weighed against, px.
@@ -247,6 +247,8 @@ class VoOptions:
         orb_fallback: match ORB against the keyframe when tracking fails (``FALLBACK``).
         keyframes: the keyframe policy (:class:`~estimation.keyframes.KeyframePolicy`).
         ba_window: local bundle adjustment over this many keyframes (0: off).
+        revisit_keyframes: keep this many past keyframes and return to one the camera sees again
+            instead of making a new keyframe (``estimation.revisit``; 0: off).
         seed: RANSAC random seed (repeatable runs).
     """
 
@@ -285,6 +287,7 @@ class VoOptions:
     orb_fallback: bool = True
     keyframes: KeyframePolicy = field(default_factory=KeyframePolicy)
     ba_window: int = 0
+    revisit_keyframes: int = 0
     seed: int = 0
 
     def for_camera(self, focal_px: float, width_px: int) -> VoOptions:
@@ -368,6 +371,8 @@ class VoOptions:
                 f"VoOptions.depth_sigma_per_m2={self.depth_sigma_per_m2}, track_sigma_px={self.track_sigma_px}; "
                 "use a depth noise >= 0 per m^2 (0: fixed weight; Kinect v1 1.425e-3) and a pixel noise > 0"
             )
+        if self.revisit_keyframes < 0:
+            raise EstimationError(f"VoOptions.revisit_keyframes is {self.revisit_keyframes}; use >= 0 (0: off)")
         if not 0 < self.min_depth_m < self.max_depth_m:
             raise EstimationError(
                 f"VoOptions depth range [{self.min_depth_m}, {self.max_depth_m}] m is empty; set 0 < min < max"

@@ -26,7 +26,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
@@ -50,8 +50,9 @@ from trajectories.supervisor import (
     SupervisorInput,
     supervise,
 )
+from trajectories.takeoff import LiftOff
 
-__all__ = ["ControlLoop", "FaultExit", "LiftOff", "LogRow", "Status"]
+__all__ = ["ControlLoop", "FaultExit", "LogRow", "Status"]
 
 logger = logging.getLogger(__name__)
 
@@ -604,30 +605,6 @@ class ControlLoop:
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await self._pose_task
             self._pose_task = None
-
-
-@dataclass
-class LiftOff:
-    """Lift-off reference: stay over ``start_m`` and climb at ``climb_m_s``, open-ended.
-
-    The height reference is the measured height (``height_of()``; no vertical P term): the climb
-    is pure feed-forward, so motor spin-up does not build a position error that overshoots later.
-    """
-
-    start_m: Vec3Tuple
-    yaw_rad: float
-    climb_m_s: float
-    height_of: Callable[[], float | None] = field(default=lambda: None)
-    name: str = "climb"
-    laps: int = 1
-    lap_duration_s: float = math.inf
-    duration_s: float = math.inf
-
-    def reference(self, t_s: float) -> Reference:
-        z = self.height_of()
-        if z is None:
-            z = self.start_m[2]
-        return Reference(t_s, (self.start_m[0], self.start_m[1], z), (0.0, 0.0, self.climb_m_s), self.yaw_rad)
 
 
 def _position(p: MocapPose) -> Vec3Tuple:

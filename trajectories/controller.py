@@ -32,9 +32,9 @@ import enum
 import math
 from dataclasses import dataclass, field
 
-from flightkit.config import setting
 from flightkit.frames import Vec3Tuple, wrap_angle_rad
 from flightkit.link.base import SetpointFrame, VelocitySetpoint
+from flightkit.settings import setting
 from trajectories.base import Reference
 
 __all__ = ["ControlOutput", "ControllerConfig", "OutputFrame", "SetpointKind", "VelocityController", "YawControl"]

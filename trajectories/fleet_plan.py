@@ -38,10 +38,11 @@ from pathlib import Path
 from typing import Any
 
 from flightkit.clock import Clock
-from flightkit.config import LabConfig, load_section, load_toml, setting
+from flightkit.config import LabConfig
 from flightkit.errors import ConfigError, PlanError, SafetyAbort
 from flightkit.frames import Vec3Tuple
 from flightkit.mocap.base import MocapSource
+from flightkit.settings import load_section, load_toml, setting
 from trajectories.base import Pattern, Reference
 from trajectories.control_loop import Status
 from trajectories.flightlog import FlightSummary

@@ -34,8 +34,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from flightkit.config import LabConfig, load_section, load_toml, setting
+from flightkit.config import LabConfig
 from flightkit.errors import ConfigError, PlanError
+from flightkit.settings import load_section, load_toml, setting
 from trajectories.base import Pattern, YawMode
 from trajectories.circle import Circle
 from trajectories.controller import ControllerConfig

@@ -12,9 +12,9 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from flightkit.config import setting
 from flightkit.errors import ConfigError
 from flightkit.frames import Vec3Tuple
+from flightkit.settings import setting
 from trajectories.base import Pattern
 
 __all__ = ["Approach", "FleetSafety", "closest_approach", "plan_separation"]

@@ -33,10 +33,10 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from flightkit.config import setting
 from flightkit.errors import ConfigError
 from flightkit.frames import Vec3Tuple
 from flightkit.link.base import FlightMode, Telemetry
+from flightkit.settings import setting
 
 __all__ = [
     "ACTION_OF",

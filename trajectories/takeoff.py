@@ -1,12 +1,17 @@
-"""Take-off and landing references: vertical moves at a climb / descent rate."""
+"""Take-off and landing references: vertical moves at a climb / descent rate, and the open-ended
+lift-off climb."""
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
 from flightkit.errors import PlanError
 from flightkit.frames import Vec3Tuple
-from trajectories.base import Move, PiecewisePattern
+from trajectories.base import Move, PiecewisePattern, Reference
 
-__all__ = ["Land", "Takeoff"]
+__all__ = ["Land", "LiftOff", "Takeoff"]
 
 
 class Takeoff(PiecewisePattern):
@@ -69,3 +74,27 @@ class Land(PiecewisePattern):
         start = (float(start_m[0]), float(start_m[1]), float(start_m[2]))
         bottom = (start[0], start[1], min(float(floor_m), start[2]) - float(push_m))
         super().__init__("land", [Move(start, bottom, descent_m_s, accel_m_s2, float(yaw_rad))], 1)
+
+
+@dataclass
+class LiftOff:
+    """Lift-off reference: stay over ``start_m`` and climb at ``climb_m_s``, open-ended.
+
+    The height reference is the measured height (``height_of()``; no vertical P term): the climb
+    is pure feed-forward, so motor spin-up does not build a position error that overshoots later.
+    """
+
+    start_m: Vec3Tuple
+    yaw_rad: float
+    climb_m_s: float
+    height_of: Callable[[], float | None] = field(default=lambda: None)
+    name: str = "climb"
+    laps: int = 1
+    lap_duration_s: float = math.inf
+    duration_s: float = math.inf
+
+    def reference(self, t_s: float) -> Reference:
+        z = self.height_of()
+        if z is None:
+            z = self.start_m[2]
+        return Reference(t_s, (self.start_m[0], self.start_m[1], z), (0.0, 0.0, self.climb_m_s), self.yaw_rad)

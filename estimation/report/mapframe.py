@@ -22,8 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from flightkit.config import setting
 from flightkit.frames import Transform, wrap_angle_rad
+from flightkit.settings import setting
 
 from .messages import PoseUpdate
 

@@ -1,7 +1,7 @@
 """The reference mapping server: robots, tracks and wall segments on a 2D map.
 
 One :class:`~.transport.SerialTransport` (one thread) per port, each running a
-:class:`~.link_session.ServerEndpoint`, so several robots can report over several dongles (or
+:class:`~.endpoints.ServerEndpoint`, so several robots can report over several dongles (or
 share one radio channel, told apart by their robot id). The server keeps each robot's
 latest pose, its track and its segments, writes every event to a JSON-lines log, saves a
 PNG map, and sends navigation orders (reliably, in order) to a robot by id or name.
@@ -25,16 +25,8 @@ from flightkit.clock import Clock, WallClock
 from flightkit.errors import ProtocolError
 from flightkit.lifetime import Running
 
-from .link_session import (
-    Connected,
-    Delivered,
-    LinkLost,
-    PeerGoodbye,
-    PoseReceived,
-    SegmentReceived,
-    ServerEndpoint,
-    SessionConfig,
-)
+from .endpoints import ServerEndpoint
+from .link_session import Connected, Delivered, LinkLost, PeerGoodbye, PoseReceived, SegmentReceived, SessionConfig
 from .messages import MsgType, NavOrder, PoseUpdate, Segment
 from .transport import PortLost, PortOpened, SerialTransport, TransportEvent
 

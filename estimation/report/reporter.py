@@ -6,7 +6,7 @@
         await rep.run(replay_samples(read_tum_samples("flight.tum"), clock), rate_hz=50)
 
 A :class:`Reporter` owns a :class:`~.transport.SerialTransport` (one thread) running a
-:class:`~.link_session.RobotEndpoint`. :meth:`Reporter.report_pose` offers a pose (newest wins:
+:class:`~.endpoints.RobotEndpoint`. :meth:`Reporter.report_pose` offers a pose (newest wins:
 only the latest offered pose is sent when the line is free); :meth:`Reporter.report_segment`
 queues a wall segment for reliable delivery; navigation orders from the server arrive in
 :attr:`Reporter.nav_orders` and through the ``on_nav_order`` callback.
@@ -31,21 +31,14 @@ from types import TracebackType
 from typing import Any, Self
 
 from flightkit.clock import Clock, WallClock
-from flightkit.config import setting
 from flightkit.errors import DatasetError, ProtocolError
 from flightkit.frames import Transform, WorldFrames
 from flightkit.lifetime import Running
 from flightkit.mocap.base import MocapSource
+from flightkit.settings import setting
 
-from .link_session import (
-    Connected,
-    LinkLost,
-    NavOrderReceived,
-    PeerGoodbye,
-    RobotEndpoint,
-    SessionConfig,
-    SessionStats,
-)
+from .endpoints import RobotEndpoint
+from .link_session import Connected, LinkLost, NavOrderReceived, PeerGoodbye, SessionConfig, SessionStats
 from .mapframe import MapFrame, MapFrameConfig
 from .messages import Capability, NavOrder, Segment
 from .transport import PortLost, PortOpened, SerialTransport, TransportEvent

@@ -47,7 +47,7 @@ R = TypeVar("R")
 
 
 class Endpoint(Protocol):
-    """What a transport drives (:class:`~.link_session.RobotEndpoint`, :class:`~.link_session.ServerEndpoint`)."""
+    """What a transport drives (:class:`~.endpoints.RobotEndpoint`, :class:`~.endpoints.ServerEndpoint`)."""
 
     def receive_bytes(self, data: bytes, now_s: float) -> None: ...
     def next_bytes(self, now_s: float) -> bytes | None: ...

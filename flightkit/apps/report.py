@@ -27,9 +27,10 @@ from estimation.report.reporter import (
 )
 from flightkit.bus.keys import Keys
 from flightkit.clock import Clock, WallClock
-from flightkit.config import LabConfig, MocapSourceKind, load_section, load_toml
+from flightkit.config import LabConfig, MocapSourceKind
 from flightkit.errors import ConfigError
 from flightkit.frames import WorldFrames
+from flightkit.settings import load_section, load_toml
 
 __all__ = ["MapServer", "ReportOutcome", "ReporterConfig", "parse_orders", "report_poses", "reporter_config"]
 

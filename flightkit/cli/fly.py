@@ -65,7 +65,8 @@ def run(args: argparse.Namespace) -> int:
 
     from flightkit.apps.fleet import is_fleet_plan
     from flightkit.apps.flight import Status, fly, lab_with_overrides, load_plan, plot_log
-    from flightkit.config import load_config, load_toml
+    from flightkit.config import load_config
+    from flightkit.settings import load_toml
 
     if is_fleet_plan(load_toml(args.plan)):
         return _run_fleet(args)

@@ -104,7 +104,7 @@ def test_camera_intrinsics_defaults_and_mount() -> None:
 def test_capability_sections_are_carried_and_validated_by_their_owner(tmp_path: Path) -> None:
     from dataclasses import dataclass
 
-    from flightkit.config import setting
+    from flightkit.settings import setting
 
     @dataclass(frozen=True, slots=True)
     class ReportSection:

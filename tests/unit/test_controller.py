@@ -7,9 +7,9 @@ import math
 
 import pytest
 
-from flightkit.config import load_section
 from flightkit.errors import ConfigError
 from flightkit.link.base import SetpointFrame
+from flightkit.settings import load_section
 from trajectories.base import Reference, with_acceleration
 from trajectories.controller import (
     ControllerConfig,

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from estimation.frontend import CameraGeometry
-from estimation.motion import make_T, refine_pose
+from estimation.motion import make_T
+from estimation.pnp import refine_pose
 from estimation.vo_options import VoOptions
 from flightkit.datasets.base import CameraIntrinsics
 from flightkit.errors import EstimationError

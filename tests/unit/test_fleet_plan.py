@@ -5,8 +5,8 @@ from pathlib import Path
 
 import pytest
 
-from flightkit.config import load_toml
 from flightkit.errors import ConfigError, PlanError
+from flightkit.settings import load_toml
 from trajectories.fleet_plan import is_fleet_plan, load_fleet_plan, parse_fleet_plan
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"

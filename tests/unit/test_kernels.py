@@ -16,7 +16,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from estimation import _kernels
-from estimation.motion import refine_pose
+from estimation.pnp import refine_pose
 from flightkit.errors import EstimationError
 
 SIZES = [1, 2, 3, 4, 5, 7, 16, 33, 200, 457]

@@ -44,9 +44,13 @@ PURE_MODULES = (
     "flightkit/calibration/latency.py",
     "flightkit/calibration/result.py",
     "estimation/motion.py",
+    "estimation/rigid.py",
+    "estimation/pnp.py",
+    "estimation/essential.py",
     "estimation/evaluation.py",
     "estimation/report/protocol.py",
     "estimation/report/link_session.py",
+    "estimation/report/endpoints.py",
 )
 
 

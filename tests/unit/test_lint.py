@@ -21,7 +21,7 @@ LIBRARY_PACKAGES = ("flightkit", "trajectories", "capture", "estimation")
 ANY_RETURN_ALLOWED = {
     # The overload for a required key: a dataclass field specifier with no default has no
     # type of its own (as dataclasses.field); the field's annotation gives it.
-    ("flightkit/config.py", "setting"),
+    ("flightkit/settings.py", "setting"),
 }
 
 

@@ -6,13 +6,8 @@ import math
 
 import pytest
 
-from estimation.live import (
-    FramePairer,
-    LiveVoConfig,
-    external_pose_from_frame,
-    intrinsics_from_camera_info,
-    vision_uncertainty,
-)
+from estimation.live import LiveVoConfig, external_pose_from_frame, vision_uncertainty
+from estimation.live_inputs import FramePairer, intrinsics_from_camera_info
 from estimation.pipeline import FramePose, Quality
 from flightkit.bus.msgs import CameraInfo, Header
 from flightkit.errors import EstimationError

@@ -8,21 +8,16 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from estimation.motion import (
-    PNP_METHODS,
+from estimation.essential import (
     essential_from_prior,
     essential_metric,
-    invert,
-    make_T,
-    pnp,
     pose_from_essential,
-    ransac_rigid,
     refine_essential,
-    rigidity_inliers,
-    rotation_angle_rad,
     sampson_px,
-    umeyama,
 )
+from estimation.motion import invert, make_T, rotation_angle_rad
+from estimation.pnp import PNP_METHODS, pnp
+from estimation.rigid import ransac_rigid, rigidity_inliers, umeyama
 from flightkit.errors import EstimationError
 
 K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
@@ -304,7 +299,7 @@ def test_essential_from_prior_declines_when_the_prediction_does_not_explain_the_
 
 
 def test_refine_pose_converges_to_the_exact_pose_with_and_without_disparity() -> None:
-    from estimation.motion import refine_pose
+    from estimation.pnp import refine_pose
 
     X = scene(60)
     T = true_motion()
@@ -320,7 +315,7 @@ def test_refine_pose_converges_to_the_exact_pose_with_and_without_disparity() ->
 def test_refine_pose_disparity_fixes_depth_along_the_axis() -> None:
     """A narrow field of view constrains motion along the optical axis poorly from pixels
     alone; the current disparity measures it directly."""
-    from estimation.motion import refine_pose
+    from estimation.pnp import refine_pose
 
     rng = np.random.default_rng(21)
     z = rng.uniform(3.0, 8.0, 120)
@@ -467,7 +462,7 @@ def test_projection_margin_follows_the_focal_length_border_and_huber_width_do_no
 
 
 def test_refine_pose_stops_when_converged_at_the_full_answer() -> None:
-    from estimation.motion import refine_pose
+    from estimation.pnp import refine_pose
 
     rng = np.random.default_rng(5)
     X = scene(150)
@@ -485,7 +480,7 @@ def test_refine_pose_stops_when_converged_at_the_full_answer() -> None:
 def test_refine_pose_huber_keeps_gross_outliers_from_moving_the_pose() -> None:
     """Pixel and disparity outliers (10 % of each) barely move the polished pose: the Huber
     weights (1 within the threshold, threshold / |r| beyond) hold them down."""
-    from estimation.motion import refine_pose
+    from estimation.pnp import refine_pose
 
     rng = np.random.default_rng(11)
     X = scene(200)
@@ -593,7 +588,7 @@ def test_depth_weight_follows_the_sensor_noise_model() -> None:
 def test_refine_pose_with_the_noise_model_weight_beats_the_fixed_one_on_kinect_like_depth() -> None:
     """Pixels with 0.5 px noise and depth with sigma_z = 1.425e-3 z^2: the polish weighted by the
     model (virtual baseline 0.5 / (f c)) finds the motion closer than with the old 0.1 m."""
-    from estimation.motion import refine_pose
+    from estimation.pnp import refine_pose
 
     rng = np.random.default_rng(5)
     c, f = 1.425e-3, 500.0

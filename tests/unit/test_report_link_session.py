@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 
 import pytest
 
+from estimation.report.endpoints import RobotEndpoint, ServerEndpoint
 from estimation.report.link_session import (
     Connected,
     Delivered,
@@ -19,9 +20,7 @@ from estimation.report.link_session import (
     NavOrderReceived,
     PeerGoodbye,
     PoseReceived,
-    RobotEndpoint,
     SegmentReceived,
-    ServerEndpoint,
     SessionConfig,
     SessionState,
 )

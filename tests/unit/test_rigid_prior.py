@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from estimation.motion import _kabsch, invert, make_T, ransac_rigid, rigid_from_prior, rotation_angle_rad, umeyama
+from estimation.motion import invert, make_T, rotation_angle_rad
 from estimation.pipeline import KabschOptions, VoOptions
+from estimation.rigid import _kabsch, ransac_rigid, rigid_from_prior, umeyama
 from flightkit.errors import EstimationError
 
 

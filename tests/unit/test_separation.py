@@ -40,7 +40,7 @@ def test_plan_separation_finds_the_closest_moment() -> None:
 
 
 def test_fleet_safety_policy_is_checked() -> None:
-    from flightkit.config import load_section
+    from flightkit.settings import load_section
 
     with pytest.raises(ConfigError, match="on_vehicle_fault"):
         load_section(FleetSafety, {"on_vehicle_fault": "panic"}, prefix="fleet")

@@ -7,9 +7,9 @@ import math
 
 import pytest
 
-from flightkit.config import load_section
 from flightkit.errors import ConfigError
 from flightkit.link.base import BatteryState, FlightMode, Telemetry
+from flightkit.settings import load_section
 from trajectories.supervisor import (
     Action,
     FaultKind,
