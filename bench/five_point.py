@@ -29,7 +29,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import estimation.motion as motion  # noqa: E402
+import estimation.essential as essential  # noqa: E402
 from estimation.five_point import find_essential  # noqa: E402
 from estimation.pipeline import run_vo, warm_up  # noqa: E402
 from flightkit.datasets.registry import open_sequence  # noqa: E402
@@ -54,12 +54,12 @@ def record(folder: str) -> list[Call]:
         E, mask = cv2.findEssentialMat(px_ref, px_cur, K, method=cv2.RANSAC, prob=confidence, threshold=threshold_px)
         return (None if E is None else E[:3]), (np.zeros(len(px_ref), bool) if mask is None else mask.ravel() > 0)
 
-    compiled = motion.find_essential
-    motion.find_essential = opencv
+    compiled = essential.find_essential
+    essential.find_essential = opencv
     try:
         run_vo(open_sequence(DATA / folder), "rgbd-essential", init_from_groundtruth=True)
     finally:
-        motion.find_essential = compiled
+        essential.find_essential = compiled
     return calls
 
 
