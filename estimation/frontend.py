@@ -291,17 +291,23 @@ class FrontEnd:
     def track(self, prev: U8, cur: U8, guess: F32, trust_px: F64 | float) -> tuple[F32, Bool]:
         """Track the keyframe's points from the previous image into ``cur`` (LK, forward-backward
         checked, started at ``guess``); tracks that leave the image are not ok."""
-        g = self.geo
-        o = self.opts
+        return self._lk(prev, cur, self.trk_px, guess, self.geo.klt_back_levels, trust_px)
+
+    def _lk(
+        self, prev: U8, cur: U8, px0: F32, guess: F32, back_levels: int, trust_px: F64 | float = 0.0
+    ) -> tuple[F32, Bool]:
+        """LK from ``px0`` in ``prev`` into ``cur``, started at ``guess``, with the front end's window,
+        levels and forward-backward check; tracks that end outside ``cur`` are not ok."""
+        g, o = self.geo, self.opts
         px, ok = track_klt(
             prev,
             cur,
-            self.trk_px,
+            px0,
             o.fb_max_px,
             g.klt_win,
             g.klt_levels,
             guess=guess,
-            back_levels=g.klt_back_levels,
+            back_levels=back_levels,
             max_iters=o.klt_iters,
             trust_guess_px=trust_px,
         )
@@ -381,13 +387,14 @@ class FrontEnd:
 
     def snapshot(self) -> StoredKeyframe:
         """The keyframe as it stands (copies of its point arrays), for a :class:`KeyframeStore`."""
+        assert self.kf_gray is not None, "snapshot of a front end that has no keyframe yet"
         return StoredKeyframe(
             self.T_world_kf.copy(),
             self.kf_X.copy(),
             self.kf_px.copy(),
             self.kf_ids.copy(),
             self.kf_w.copy(),
-            self.kf_gray if self.kf_gray is not None else np.zeros((1, 1), np.uint8),
+            self.kf_gray,
             self.kf_right,
             self.kf_depth,
         )
@@ -396,22 +403,11 @@ class FrontEnd:
         """Return to a kept keyframe: track its points from its image into ``gray`` (LK from their
         projection at ``T_world_cam``, forward-backward checked) and make it the keyframe if at
         least the keyframe policy's share and count of them are tracked; else change nothing."""
-        o, g = self.opts, self.geo
+        g = self.geo
         guess, vis = g.project(invert(T_world_cam) @ kf.T_world_kf, kf.X)
-        px, ok = track_klt(
-            kf.gray,
-            gray,
-            kf.px,
-            o.fb_max_px,
-            g.klt_win,
-            g.klt_levels,
-            guess=np.where(vis[:, None], guess, kf.px),
-            back_levels=g.klt_levels,
-            max_iters=o.klt_iters,
-        )
-        h, w = gray.shape
-        ok &= vis & (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
-        policy = o.keyframes
+        px, ok = self._lk(kf.gray, gray, kf.px, np.where(vis[:, None], guess, kf.px), g.klt_levels)
+        ok &= vis
+        policy = self.opts.keyframes
         n_ok = int(np.count_nonzero(ok))
         if n_ok < max(policy.min_tracked, policy.min_tracked_fraction * len(kf.X)):
             return False
