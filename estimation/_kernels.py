@@ -255,20 +255,27 @@ def pose_gauss_newton(
                 H[a, b] = H[b, a]
         if not _solve6(H, g):
             break
-        _rotvec_matrix(g[3], g[4], g[5], dR)
-        for a in range(3):
-            for b in range(4):
-                s = dR[a, 0] * T[0, b] + dR[a, 1] * T[1, b] + dR[a, 2] * T[2, b]
-                Tn[a, b] = s + g[a] if b == 3 else s
-        for a in range(3):
-            for b in range(4):
-                T[a, b] = Tn[a, b]
-        step2 = 0.0
-        for a in range(dof):
-            step2 += g[a] * g[a]
-        if step2 < stop:
+        if _left_update(T, g, dR, Tn) < stop:
             break
     return T
+
+
+@njit(cache=True)
+def _left_update(T: Any, xi: Any, dR: Any, Tn: Any) -> float:
+    """``T <- exp(xi) T`` in place for a step ``xi = [rho, phi]`` (Rodrigues' rotation, translation
+    ``rho``; ``dR``, ``Tn`` scratch (3, 3) and (4, 4)); returns ``xi . xi``."""
+    _rotvec_matrix(xi[3], xi[4], xi[5], dR)
+    for a in range(3):
+        for b in range(4):
+            s = dR[a, 0] * T[0, b] + dR[a, 1] * T[1, b] + dR[a, 2] * T[2, b]
+            Tn[a, b] = s + xi[a] if b == 3 else s
+    for a in range(3):
+        for b in range(4):
+            T[a, b] = Tn[a, b]
+    step2 = 0.0
+    for a in range(xi.shape[0]):
+        step2 += xi[a] * xi[a]
+    return step2
 
 
 @njit(cache=True)
