@@ -28,10 +28,10 @@ METHODS = [
     "rgbd-kabsch",
     "rgbd-kabsch@weigh",
     "stereo",
-    "stereo@weigh",
+    "stereo@exact",
     "stereo@far",
     "stereo@far+offset",
-    "stereo@far+offset+weigh",
+    "stereo@far+offset+exact",
     "flow",
 ]
 """Every method runs on the synthetic sequences: they carry colour, depth and a stereo pair."""

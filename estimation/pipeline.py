@@ -174,6 +174,7 @@ class VisualOdometry:
         self.path_counts: Counter[str] = Counter()
         self.front = FrontEnd(self.geo, o, stereo)
         self.polisher = PosePolisher(self.geo, o, stereo)
+        self._point_uncertainty = o.point_uncertainty if o.point_uncertainty is not None else stereo
         self._flow: FlowEstimator | None = None
         self._estimator: MotionEstimator | None = None
         if self.method is Method.FLOW:
@@ -354,7 +355,7 @@ class VisualOdometry:
                 gray,
                 right_gray,
                 depth_m,
-                disparity_variance(front.kf_w[idx], front.kf_X[idx, 2]) if o.point_uncertainty else None,
+                disparity_variance(front.kf_w[idx], front.kf_X[idx, 2]) if self._point_uncertainty else None,
             )
             m = self._estimator.estimate(tracks)
             if m.ok:
