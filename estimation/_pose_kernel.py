@@ -64,10 +64,10 @@ def pose_gauss_newton_whitened(
     gv = np.zeros(3)
     q = np.zeros(dof)
     for _ in range(iterations):
-        for a in range(dof):
-            grad[a] = 0.0
-            for b in range(dof):
-                H[a, b] = 0.0
+        # The normal equations' upper triangle and the gradient in scalars (dense rows once whitened).
+        h00 = h01 = h02 = h03 = h04 = h05 = h11 = h12 = h13 = h14 = h15 = 0.0
+        h22 = h23 = h24 = h25 = h33 = h34 = h35 = h44 = h45 = h55 = 0.0
+        g0 = g1 = g2 = g3 = g4 = g5 = 0.0
         behind = False
         for i in range(n):
             z = _xform(X, T, i, 2)
@@ -133,15 +133,45 @@ def pose_gauss_newton_whitened(
                     for a in range(dof):
                         J[k, a] -= bw * gv[k] * q[a]
             for k in range(rows):
-                w = _huber_weight(r[k], huber)
-                for a in range(dof):
-                    wa = w * J[k, a]
-                    if wa != 0.0:
-                        for b in range(a, dof):
-                            H[a, b] += wa * J[k, b]
-                        grad[a] -= wa * r[k]
+                j0, j1, j2, j3, j4, j5, rk = J[k, 0], J[k, 1], J[k, 2], J[k, 3], J[k, 4], J[k, 5], r[k]
+                w = _huber_weight(rk, huber)
+                w0, w1, w2, w3, w4, w5 = w * j0, w * j1, w * j2, w * j3, w * j4, w * j5
+                h00 += w0 * j0
+                h01 += w0 * j1
+                h02 += w0 * j2
+                h03 += w0 * j3
+                h04 += w0 * j4
+                h05 += w0 * j5
+                h11 += w1 * j1
+                h12 += w1 * j2
+                h13 += w1 * j3
+                h14 += w1 * j4
+                h15 += w1 * j5
+                h22 += w2 * j2
+                h23 += w2 * j3
+                h24 += w2 * j4
+                h25 += w2 * j5
+                h33 += w3 * j3
+                h34 += w3 * j4
+                h35 += w3 * j5
+                h44 += w4 * j4
+                h45 += w4 * j5
+                h55 += w5 * j5
+                g0 += w0 * rk
+                g1 += w1 * rk
+                g2 += w2 * rk
+                g3 += w3 * rk
+                g4 += w4 * rk
+                g5 += w5 * rk
         if behind:
             break
+        H[0, 0], H[0, 1], H[0, 2], H[0, 3], H[0, 4], H[0, 5] = h00, h01, h02, h03, h04, h05
+        H[1, 1], H[1, 2], H[1, 3], H[1, 4], H[1, 5] = h11, h12, h13, h14, h15
+        H[2, 2], H[2, 3], H[2, 4], H[2, 5] = h22, h23, h24, h25
+        H[3, 3], H[3, 4], H[3, 5] = h33, h34, h35
+        H[4, 4], H[4, 5] = h44, h45
+        H[5, 5] = h55
+        grad[0], grad[1], grad[2], grad[3], grad[4], grad[5] = -g0, -g1, -g2, -g3, -g4, -g5
         for a in range(dof):
             for b in range(a):
                 H[a, b] = H[b, a]
