@@ -63,11 +63,11 @@ from flightkit.datasets.registry import open_sequence  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
-RGBD = ["rgbd-pnp", "rgbd-essential", "rgbd-kabsch", "rgbd-kabsch@revisit", "flow"]
-STEREO = ["stereo", "stereo@far", "stereo@offset"]
+RGBD = ["rgbd-pnp", "rgbd-essential", "rgbd-kabsch", "rgbd-kabsch@weigh", "rgbd-kabsch@revisit", "flow"]
+STEREO = ["stereo", "stereo@exact", "stereo@far", "stereo@offset"]
 SEQUENCES: dict[str, tuple[str, list[str], str]] = {
     # key: (folder, flightkit methods, plain baseline)
-    "kitti06": ("kitti06_stereo", STEREO + ["stereo@far+offset", "flow"], "plain-stereo"),
+    "kitti06": ("kitti06_stereo", STEREO + ["stereo@far+offset", "stereo@far+offset+exact", "flow"], "plain-stereo"),
     "tum_rpy": ("tum_fr1rpy_000_199", RGBD, "plain-rgbd"),
     "7scenes": ("sevenscenes_tsdf50", RGBD, "plain-rgbd"),
     "tum_case1": ("tum_fr1xyz_pairs/case_1", RGBD, "plain-rgbd"),
@@ -83,6 +83,9 @@ VARIANTS: dict[str, VoOptions] = {
     "far": VoOptions(far_points="weighted"),  # stereo keeping the points beyond the depth cap, mostly for the rotation
     "far+offset": VoOptions(far_points="weighted", stereo_offset=True),
     "revisit": VoOptions(revisit_keyframes=30),  # RGB-D returning to kept keyframes the camera sees again
+    "weigh": VoOptions(point_uncertainty=True),  # RGB-D: the polish weighs each point by its keyframe depth's noise
+    "exact": VoOptions(point_uncertainty=False),  # stereo: the polish takes the keyframe points as exact
+    "far+offset+exact": VoOptions(far_points="weighted", stereo_offset=True, point_uncertainty=False),
 }
 """Row-name suffixes (``method@variant``) and their options."""
 

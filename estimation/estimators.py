@@ -60,6 +60,8 @@ class Tracks:
         guess: the predicted ``T_cur_kf`` (constant velocity).
         has_prior: the prediction comes from a measured motion (not the identity of a start).
         gray, right_gray, depth_m: the current frame's images (right or depth None when absent).
+        var_kf: (N,) the points' keyframe disparity variance over one measurement's
+            (``frontend.disparity_variance``), or None (``VoOptions.point_uncertainty`` off).
     """
 
     X_kf: F64
@@ -71,6 +73,7 @@ class Tracks:
     gray: U8
     right_gray: U8 | None
     depth_m: F32 | None
+    var_kf: F64 | None = None
 
 
 class MotionEstimator(Protocol):
@@ -158,6 +161,7 @@ class EssentialEstimator:
                 t.right_gray,
                 eo.pnp_prior_gate_px,
                 eo.prior_min_fraction,
+                t.var_kf,
             )
             if m_pp is not None:
                 self.paths["pnp-prior"] += 1
@@ -174,7 +178,7 @@ class EssentialEstimator:
                 guess_T_cur_ref=guess,
                 ransac_kernel=o.pnp_kernel,
             )
-        return self.polisher.polish(m, X_kf, t.px_cur, und_cur, t.depth_m, t.gray, t.right_gray)
+        return self.polisher.polish(m, X_kf, t.px_cur, und_cur, t.depth_m, t.gray, t.right_gray, var_kf=t.var_kf)
 
 
 class KabschEstimator:
@@ -232,7 +236,9 @@ class KabschEstimator:
         m = Motion(m.T_cur_ref, mask, m.ok)
         if not ko.polish:
             return m
-        return self.polisher.polish(m, t.X_kf, t.px_cur, t.und_cur, t.depth_m, t.gray, t.right_gray, z)
+        return self.polisher.polish(
+            m, t.X_kf, t.px_cur, t.und_cur, t.depth_m, t.gray, t.right_gray, z, t.var_kf
+        )
 
 
 class PnpEstimator:
@@ -283,6 +289,7 @@ class PnpEstimator:
                 t.right_gray,
                 po.prior_gate_px,
                 po.prior_min_fraction,
+                None if t.var_kf is None else t.var_kf[idx],
             )
             if m_prior is not None:
                 mask = np.zeros(n, dtype=bool)
@@ -304,7 +311,14 @@ class PnpEstimator:
         T = m.T_cur_ref
         if m.ok and o.refine_with_depth:
             T = self.polisher.refine(
-                T, t.X_kf[mask], t.px_cur[mask], t.und_cur[mask], t.depth_m, t.gray, t.right_gray
+                T,
+                t.X_kf[mask],
+                t.px_cur[mask],
+                t.und_cur[mask],
+                t.depth_m,
+                t.gray,
+                t.right_gray,
+                var_kf=None if t.var_kf is None else t.var_kf[mask],
             )
             self.polisher.remap(mask)
         return Motion(T, mask, m.ok)

@@ -31,7 +31,7 @@ from flightkit.errors import EstimationError
 if TYPE_CHECKING:
     from flightkit.datasets.base import CameraIntrinsics
 
-__all__ = ["CameraGeometry", "FrontEnd"]
+__all__ = ["CameraGeometry", "FrontEnd", "disparity_variance"]
 
 logger = logging.getLogger(__name__)
 
@@ -252,6 +252,13 @@ def depth_weight(z: F64) -> F64:
     """Inverse variance of a depth measurement (stereo and Kinect-like: sigma_z ~ z^2)."""
     w: F64 = 1.0 / np.maximum(z, 1e-3) ** 4
     return w
+
+
+def disparity_variance(w: F64, z: F64) -> F64:
+    """Variance of fused points' disparity ``fb / z`` over one measurement's, from their fusion
+    weights ``w`` (sums of :func:`depth_weight`) and depths ``z``: 1 for a single measurement."""
+    v: F64 = depth_weight(z) / w
+    return v
 
 
 class FrontEnd:

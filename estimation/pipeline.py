@@ -63,7 +63,7 @@ import numpy.typing as npt
 from estimation.estimators import MotionEstimator, Tracks, keyframe_estimator
 from estimation.features import as_gray
 from estimation.flow_vo import FlowEstimator
-from estimation.frontend import CameraGeometry, FrontEnd
+from estimation.frontend import CameraGeometry, FrontEnd, disparity_variance
 from estimation.local_ba import LocalBundleWindow
 from estimation.motion import Motion, invert, median
 from estimation.polish import Meas, PosePolisher
@@ -174,6 +174,7 @@ class VisualOdometry:
         self.path_counts: Counter[str] = Counter()
         self.front = FrontEnd(self.geo, o, stereo)
         self.polisher = PosePolisher(self.geo, o, stereo)
+        self._point_uncertainty = o.point_uncertainty if o.point_uncertainty is not None else stereo
         self._flow: FlowEstimator | None = None
         self._estimator: MotionEstimator | None = None
         if self.method is Method.FLOW:
@@ -354,6 +355,7 @@ class VisualOdometry:
                 gray,
                 right_gray,
                 depth_m,
+                disparity_variance(front.kf_w[idx], front.kf_X[idx, 2]) if self._point_uncertainty else None,
             )
             m = self._estimator.estimate(tracks)
             if m.ok:

@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from estimation import _kernels
+from estimation import _pose_kernel
 from estimation.motion import Motion, failed_motion, make_T
 from flightkit.errors import EstimationError
 
@@ -153,6 +153,7 @@ def refine_pose(
     huber_px: float = 1.0,
     iterations: int = 4,
     translation_weight: npt.ArrayLike | None = None,
+    point_var: npt.ArrayLike | None = None,
 ) -> F64:
     """Gauss-Newton polish of a pose on reprojection and (optionally) disparity residuals.
 
@@ -174,6 +175,10 @@ def refine_pose(
         iterations: Gauss-Newton steps (stops early on convergence).
         translation_weight: (N,) factor in [0, 1] on each point's say in the translation (and on
             its disparity row): 0 lets a point fix the rotation only; None: 1 for every point.
+        point_var: (N,) variance of each point's own disparity ``fb / z`` (its depth in the
+            reference frame) over the tracks' pixel variance: its residuals are whitened by the
+            covariance that error adds (``estimation._pose_kernel``; needs ``fb_px_m`` > 0);
+            None: the points are exact.
 
     Returns:
         The refined (4, 4) pose: a new array (``T_cur_ref`` itself with fewer than 4 points).
@@ -200,6 +205,12 @@ def refine_pose(
         )
     if len(tw) != n:
         raise EstimationError(f"refine_pose got {n} points and {len(tw)} translation weights; give one per point")
+    var = np.empty(0) if point_var is None else np.ascontiguousarray(point_var, dtype=np.float64).reshape(-1)
+    if point_var is not None and (len(var) != n or not fb_px_m > 0):
+        raise EstimationError(
+            f"refine_pose got {n} points, {len(var)} point variances and fb_px_m={fb_px_m}; "
+            "give one variance per point and the disparities' positive fx * baseline"
+        )
     if n < 4:
         return T_cur_ref
     # The start's rotation projected onto SO(3) (OpenCV's Rodrigues takes the nearest
@@ -210,13 +221,15 @@ def refine_pose(
         T0[:3, :3] = cv2.Rodrigues(cv2.Rodrigues(T0[:3, :3])[0])[0]
     # Per step: reprojection rows u, v and a disparity row where one is measured, their
     # Jacobian in a left perturbation [rho, phi], Huber weights, the normal equations, the
-    # 6x6 solve and the update, all in one compiled call (estimation._kernels).
-    T: F64 = _kernels.pose_gauss_newton(
+    # 6x6 solve and the update, all in one compiled call (estimation._pose_kernel); with
+    # point_var the rows are whitened first.
+    T: F64 = _pose_kernel.pose_gauss_newton(
         X,
         T0,
         uv,
         disp,
         tw,
+        var,
         fx,
         fy,
         cx,

@@ -63,6 +63,7 @@ class PosePolisher:
         right_gray: U8 | None,
         gate_px: float,
         min_fraction: float,
+        var_kf: F64 | None = None,
     ) -> Motion | None:
         """PnP without RANSAC when the constant-velocity prediction already explains the tracks.
 
@@ -88,7 +89,9 @@ class PosePolisher:
         mask = geo.reproj_err2(T, X_kf, und_cur) < o.reproj_px**2
         if np.count_nonzero(mask) < need:
             return None
-        T = self.refine(T, X_kf[mask], px_cur[mask], und_cur[mask], depth_m, gray, right_gray)
+        T = self.refine(
+            T, X_kf[mask], px_cur[mask], und_cur[mask], depth_m, gray, right_gray, var_kf=_subset(var_kf, mask)
+        )
         self.remap(mask)
         return Motion(T, mask, True)
 
@@ -102,6 +105,7 @@ class PosePolisher:
         gray: U8,
         right_gray: U8 | None,
         z_cur: F64 | None = None,
+        var_kf: F64 | None = None,
     ) -> Motion:
         """The same polish as PnP's for a motion found otherwise (5-point, Kabsch): reprojection
         of the keyframe points plus this frame's depth (``refine_with_depth``), inliers
@@ -119,7 +123,8 @@ class PosePolisher:
             depth_m,
             gray,
             right_gray,
-            None if z_cur is None else z_cur[mask],
+            _subset(z_cur, mask),
+            _subset(var_kf, mask),
         )
         refined = mask & (self.geo.reproj_err2(T, X_kf, und_cur) < o.reproj_px**2)
         if np.count_nonzero(refined) < o.min_inliers:
@@ -142,9 +147,11 @@ class PosePolisher:
         gray: U8,
         right_gray: U8 | None,
         z: F64 | None = None,
+        var_kf: F64 | None = None,
     ) -> F64:
         """Polish a pose with the current frame's own depth (disparity residuals); ``z``: the
-        depth at ``px`` if already looked up (depth lookup is per pixel). Sets ``meas``."""
+        depth at ``px`` if already looked up (depth lookup is per pixel); ``var_kf``: the points'
+        keyframe disparity variance (``Tracks.var_kf``; None: exact points). Sets ``meas``."""
         geo = self.geo
         huber = self.opts.polish_huber_px
         if self.stereo:
@@ -183,4 +190,9 @@ class PosePolisher:
         X_meas = geo.backproject(und[good], fb / d[good])
         self.meas = (np.flatnonzero(good), X_meas)
         tw = geo.translation_weight(z_pred) if self.stereo else None
-        return refine_pose(T, X_kf, und, geo.K, d, fb, huber_px=huber, translation_weight=tw)
+        return refine_pose(T, X_kf, und, geo.K, d, fb, huber_px=huber, translation_weight=tw, point_var=var_kf)
+
+
+def _subset(a: F64 | None, mask: npt.NDArray[np.bool_]) -> F64 | None:
+    """``a[mask]``, or None for None."""
+    return None if a is None else a[mask]

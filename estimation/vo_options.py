@@ -240,6 +240,9 @@ class VoOptions:
             Khoshelham & Elberink 2012); weighs registered depth in the polish (0: the fixed 0.1 m weight).
         track_sigma_px: the tracks' pixel noise the depth residuals are weighed against, px.
         polish_huber_px: the pose polish's Huber width, px (not converted per camera: see the log).
+        point_uncertainty: the pose polish weighs each keyframe point by its own depth's noise
+            (one disparity measurement as noisy as a track, less after fusion; ``pnp.refine_pose``;
+            None: on for ``stereo``, off for the RGB-D methods).
         fuse_depth: fuse each frame's depth of tracked points into their 3D estimates.
         stereo_fb_check: also check left-right stereo matches right-to-left.
         stereo_offset: stereo: estimate the pair's disparity offset online (``estimation.stereo_offset``; off:
@@ -281,6 +284,7 @@ class VoOptions:
     depth_sigma_per_m2: float = 1.425e-3
     track_sigma_px: float = 0.5
     polish_huber_px: float = 1.0
+    point_uncertainty: bool | None = None
     fuse_depth: bool = True
     stereo_fb_check: bool = False
     stereo_offset: bool = False
