@@ -200,7 +200,8 @@ def trial(tmp: Path, compression: str, width: int, height: int, camera_hz: float
 def encoded_pool(width: int, height: int) -> list[tuple[bytes, bytes]]:
     """The synthetic publisher's images (capture.sources.synthetic.noise_frames), CDR-encoded."""
     from capture.sources.synthetic import noise_frames
-    from flightkit.bus.msgs import Header, Image
+    from flightkit.bus.image_msgs import Image
+    from flightkit.bus.msg_base import Header
 
     return [
         (bytes(Image.from_array(Header(0, "c"), rgb, "rgb8").encode()),
@@ -211,7 +212,7 @@ def encoded_pool(width: int, height: int) -> list[tuple[bytes, bytes]]:
 
 def bare_fast_writer_mb_s(tmp: Path, compression: str, width: int, height: int, frames: int) -> float:
     """The recorder's own writer (flightkit.datasets.mcap_writer) in a bare loop, same payloads as below."""
-    from flightkit.bus.msgs import schema_text
+    from flightkit.bus.msg_base import schema_text
     from flightkit.datasets.mcap_writer import FastMcapWriter
 
     pool = encoded_pool(width, height)
@@ -240,7 +241,7 @@ def bare_writer_mb_s(tmp: Path, compression: str, width: int, height: int, frame
     """A plain mcap Writer loop writing the same messages (rgb + depth payloads) from memory."""
     from mcap.writer import CompressionType, Writer
 
-    from flightkit.bus.msgs import schema_text
+    from flightkit.bus.msg_base import schema_text
 
     pool = encoded_pool(width, height)
     comp = {"none": CompressionType.NONE, "zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4}[compression]

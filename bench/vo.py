@@ -63,16 +63,7 @@ from flightkit.datasets.registry import open_sequence  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
-RGBD = [
-    "rgbd-pnp",
-    "rgbd-pnp@weigh",
-    "rgbd-essential",
-    "rgbd-essential@weigh",
-    "rgbd-kabsch",
-    "rgbd-kabsch@weigh",
-    "rgbd-kabsch@revisit",
-    "flow",
-]
+RGBD = ["rgbd-pnp", "rgbd-essential", "rgbd-kabsch", "rgbd-kabsch@weigh", "rgbd-kabsch@revisit", "flow"]
 STEREO = ["stereo", "stereo@exact", "stereo@far", "stereo@offset"]
 SEQUENCES: dict[str, tuple[str, list[str], str]] = {
     # key: (folder, flightkit methods, plain baseline)

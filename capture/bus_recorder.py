@@ -8,7 +8,7 @@
     report = rec.stop()        # finishes the file; RecordingReport with counts and gaps
 
 Payloads are written as they arrived (CDR bytes, never decoded and re-encoded); each
-stream becomes an MCAP channel with its ros2msg schema (:func:`flightkit.bus.msgs.schema_text`)
+stream becomes an MCAP channel with its ros2msg schema (:func:`flightkit.bus.msg_base.schema_text`)
 and QoS metadata (images best effort, everything else reliable). Each message keeps three times:
 its header stamp (the capture time, as the device gave it or not: the channel's
 ``flightkit.capture_stamp`` says), MCAP ``publish_time`` (when it was put on the bus) and
@@ -40,8 +40,9 @@ import zenoh
 from capture.config import CaptureConfig
 from capture.recorder import Compression, Recorder, RecordingReport, StreamSample, StreamStats
 from flightkit.bus.clock_exchange import ClockWatch, bus_host_name
+from flightkit.bus.image_msgs import CameraInfo
 from flightkit.bus.keys import Keys
-from flightkit.bus.msgs import CameraInfo, schema_text
+from flightkit.bus.msg_base import schema_text
 from flightkit.bus.pubsub import BusSample, BusSubscriber
 from flightkit.bus.session import open_session
 from flightkit.bus.streams import is_best_effort

@@ -44,7 +44,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from flightkit.bus.msgs import CameraInfo
+from flightkit.bus.image_msgs import CameraInfo
 from flightkit.calibration.result import METADATA_RECORD, CalibrationResult
 from flightkit.datasets.euroc import euroc_sensor_yaml, write_euroc_groundtruth
 from flightkit.datasets.mcap_reader import DecodedImage, RecordingReader, decode_image

@@ -11,10 +11,8 @@ by operation, so the results are equal bit for bit (``tests/unit/test_kernels.py
 details make that hold: elementwise IEEE operations are the same in numba and numpy, and the
 rigid transform ``X @ R.T + t`` that numpy hands to OpenBLAS is a chain of fused
 multiply-adds in the order of the inner index (OpenBLAS's kernels on FMA machines), which
-:func:`_fma` spells out. One kernel departs from this on purpose: :func:`pose_gauss_newton`
-sums the pose polish's normal equations itself, point by point, instead of leaving ``J^T J``
-to OpenBLAS's blocked order, so it agrees with the numpy loop to ~1e-12 relative rather than
-bit for bit (the trajectories move in the last digits; the polish became 5x cheaper).
+:func:`_fma` spells out. The pose polish's Gauss-Newton loop, which departs from this on
+purpose, is in ``estimation._pose_kernel``.
 
 Compiled once and cached on disk next to this module (``__pycache__``); the first import in
 a fresh environment compiles them (~10 s of CPU once: `warm_up` of all five methods took
@@ -37,7 +35,6 @@ __all__ = [
     "depth_at",
     "flow_hypotheses",
     "flow_refit",
-    "pose_gauss_newton",
     "project",
     "reproj_err2",
     "sampson_distance",
@@ -91,191 +88,6 @@ def transform(X: Any, T: Any) -> F64:
         out[i, 1] = _xform(X, T, i, 1)
         out[i, 2] = _xform(X, T, i, 2)
     return out
-
-
-@njit(cache=True)
-def _rotvec_matrix(wx: float, wy: float, wz: float, R: Any) -> None:
-    """``R`` (3, 3) = the rotation of the rotation vector ``w`` (Rodrigues' formula, as
-    ``cv2.Rodrigues``: the identity below machine epsilon)."""
-    th = np.sqrt(wx * wx + wy * wy + wz * wz)
-    if th < 2.220446049250313e-16:
-        for a in range(3):
-            for b in range(3):
-                R[a, b] = 1.0 if a == b else 0.0
-        return
-    c = np.cos(th)
-    s = np.sin(th)
-    c1 = 1.0 - c
-    kx = wx / th
-    ky = wy / th
-    kz = wz / th
-    R[0, 0] = c + c1 * kx * kx
-    R[0, 1] = c1 * kx * ky - s * kz
-    R[0, 2] = c1 * kx * kz + s * ky
-    R[1, 0] = c1 * ky * kx + s * kz
-    R[1, 1] = c + c1 * ky * ky
-    R[1, 2] = c1 * ky * kz - s * kx
-    R[2, 0] = c1 * kz * kx - s * ky
-    R[2, 1] = c1 * kz * ky + s * kx
-    R[2, 2] = c + c1 * kz * kz
-
-
-@njit(cache=True)
-def _huber_weight(r: float, huber: float) -> float:
-    """IRLS weight of a residual for a Huber threshold ``huber > 0``: ``huber / max(|r|, huber)``
-    (1 within the threshold; NaN for a NaN residual, as numpy's maximum)."""
-    a = abs(r)
-    return huber / (a if (a > huber or a != a) else huber)
-
-
-@njit(cache=True)
-def pose_gauss_newton(
-    X: Any,
-    T0: Any,
-    uv: Any,
-    disp: Any,
-    tw: Any,
-    fx: float,
-    fy: float,
-    cx: float,
-    cy: float,
-    fb: float,
-    huber: float,
-    iterations: int,
-    stop: float,
-    dof: int,
-) -> F64:
-    """The whole Gauss-Newton loop of ``estimation.pnp.refine_pose``.
-
-    Per step and point ``i`` of ``X`` (reference frame) seen at ``uv[i]``: the u and v
-    reprojection residuals and, where ``disp[i]`` is a number, the disparity residual
-    ``fb / z - disp[i]``; their Jacobian rows in a left perturbation ``[rho, phi]``, Huber
-    weights (:func:`_huber_weight`); the weighted normal equations summed point by point,
-    the 6x6 solve (:func:`_solve6`), the left update ``T <- exp(xi) T`` (Rodrigues'
-    rotation, translation ``xi[:3]``); stops when ``xi . xi < stop``, or before a step when a
-    point is at or behind ``z = 1e-6`` or the system is singular. ``tw[i]`` scales point ``i``'s
-    translation columns and its disparity row (1: full say; 0: the point informs the rotation
-    only). ``dof`` is 6 (an argument,
-    so that LLVM does not unroll the loops). Returns the refined (4, 4) pose (a copy of ``T0``
-    when no step was taken).
-
-    The arithmetic of the numpy loop it replaced (rows, ``Jw.T @ J`` by BLAS, LAPACK's solve,
-    ``cv2.Rodrigues``) up to the order of the sums: the tests compare the two at 1e-9. One
-    call instead of ~10 per step: 0.20 -> 0.036 ms for 210 points and 4 steps.
-    """
-    n = X.shape[0]
-    T: F64 = T0.copy()
-    H = np.empty((dof, dof))
-    g = np.empty(dof)
-    dR = np.empty((3, 3))
-    Tn = np.empty((4, 4))
-    for _ in range(iterations):
-        # The normal equations' upper triangle in scalars, each row's known zeros left out:
-        # u row (0, 2, 3, 4, 5), v row (1, 2, 3, 4, 5), disparity row (2, 3, 4); H[0, 1] = 0.
-        h00 = h02 = h03 = h04 = h05 = h11 = h12 = h13 = h14 = h15 = 0.0
-        h22 = h23 = h24 = h25 = h33 = h34 = h35 = h44 = h45 = h55 = 0.0
-        g0 = g1 = g2 = g3 = g4 = g5 = 0.0
-        behind = False
-        for i in range(n):
-            z = _xform(X, T, i, 2)
-            if z <= 1e-6:
-                behind = True
-                break
-            x = _xform(X, T, i, 0)
-            y = _xform(X, T, i, 1)
-            iz = 1.0 / z
-            xz = x * iz
-            yz = y * iz
-            c = tw[i]
-            ru = fx * xz + cx - uv[i, 0]
-            t1 = -fx * xz
-            u0 = c * (fx * iz)
-            u2 = c * (t1 * iz)
-            u3 = t1 * yz
-            u4 = fx * (xz * xz + 1.0)
-            u5 = -fx * yz
-            w = _huber_weight(ru, huber)
-            wu0, wu2, wu3, wu4, wu5 = w * u0, w * u2, w * u3, w * u4, w * u5
-            rv = fy * yz + cy - uv[i, 1]
-            v1 = c * (fy * iz)
-            v2 = c * ((-fy * yz) * iz)
-            v3 = -fy * (yz * yz + 1.0)
-            v4 = (fy * xz) * yz
-            v5 = fy * xz
-            w = _huber_weight(rv, huber)
-            wv1, wv2, wv3, wv4, wv5 = w * v1, w * v2, w * v3, w * v4, w * v5
-            dm = disp[i]
-            if dm == dm:
-                kz = fb * iz * iz
-                rd = fb * iz - dm
-                d2 = -kz * c
-                d3 = -kz * y * c
-                d4 = kz * x * c
-                w = _huber_weight(rd, huber)
-                wd2, wd3, wd4 = w * d2, w * d3, w * d4
-            else:
-                rd = d2 = d3 = d4 = wd2 = wd3 = wd4 = 0.0
-            h00 += wu0 * u0
-            h02 += wu0 * u2
-            h03 += wu0 * u3
-            h04 += wu0 * u4
-            h05 += wu0 * u5
-            h11 += wv1 * v1
-            h12 += wv1 * v2
-            h13 += wv1 * v3
-            h14 += wv1 * v4
-            h15 += wv1 * v5
-            h22 += wu2 * u2 + wv2 * v2 + wd2 * d2
-            h23 += wu2 * u3 + wv2 * v3 + wd2 * d3
-            h24 += wu2 * u4 + wv2 * v4 + wd2 * d4
-            h25 += wu2 * u5 + wv2 * v5
-            h33 += wu3 * u3 + wv3 * v3 + wd3 * d3
-            h34 += wu3 * u4 + wv3 * v4 + wd3 * d4
-            h35 += wu3 * u5 + wv3 * v5
-            h44 += wu4 * u4 + wv4 * v4 + wd4 * d4
-            h45 += wu4 * u5 + wv4 * v5
-            h55 += wu5 * u5 + wv5 * v5
-            g0 += wu0 * ru
-            g1 += wv1 * rv
-            g2 += wu2 * ru + wv2 * rv + wd2 * rd
-            g3 += wu3 * ru + wv3 * rv + wd3 * rd
-            g4 += wu4 * ru + wv4 * rv + wd4 * rd
-            g5 += wu5 * ru + wv5 * rv
-        if behind:
-            break
-        H[0, 0], H[0, 1], H[0, 2], H[0, 3], H[0, 4], H[0, 5] = h00, 0.0, h02, h03, h04, h05
-        H[1, 1], H[1, 2], H[1, 3], H[1, 4], H[1, 5] = h11, h12, h13, h14, h15
-        H[2, 2], H[2, 3], H[2, 4], H[2, 5] = h22, h23, h24, h25
-        H[3, 3], H[3, 4], H[3, 5] = h33, h34, h35
-        H[4, 4], H[4, 5] = h44, h45
-        H[5, 5] = h55
-        g[0], g[1], g[2], g[3], g[4], g[5] = -g0, -g1, -g2, -g3, -g4, -g5
-        for a in range(dof):
-            for b in range(a):
-                H[a, b] = H[b, a]
-        if not _solve6(H, g):
-            break
-        if _left_update(T, g, dR, Tn) < stop:
-            break
-    return T
-
-
-@njit(cache=True)
-def _left_update(T: Any, xi: Any, dR: Any, Tn: Any) -> float:
-    """``T <- exp(xi) T`` in place for a step ``xi = [rho, phi]`` (Rodrigues' rotation, translation
-    ``rho``; ``dR``, ``Tn`` scratch (3, 3) and (4, 4)); returns ``xi . xi``."""
-    _rotvec_matrix(xi[3], xi[4], xi[5], dR)
-    for a in range(3):
-        for b in range(4):
-            s = dR[a, 0] * T[0, b] + dR[a, 1] * T[1, b] + dR[a, 2] * T[2, b]
-            Tn[a, b] = s + xi[a] if b == 3 else s
-    for a in range(3):
-        for b in range(4):
-            T[a, b] = Tn[a, b]
-    step2 = 0.0
-    for a in range(xi.shape[0]):
-        step2 += xi[a] * xi[a]
-    return step2
 
 
 @njit(cache=True)

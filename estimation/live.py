@@ -54,8 +54,9 @@ import numpy.typing as npt
 
 from estimation.live_inputs import FramePairer, intrinsics_from_camera_info
 from estimation.pipeline import FramePose, Method, Quality, VisualOdometry, VoOptions, warm_up
+from flightkit.bus.image_msgs import CameraInfo, Image
 from flightkit.bus.keys import Keys
-from flightkit.bus.msgs import CameraInfo, Image, PoseStamped
+from flightkit.bus.pose_msgs import PoseStamped
 from flightkit.clock import Clock
 from flightkit.datasets.base import CameraIntrinsics
 from flightkit.errors import EstimationError

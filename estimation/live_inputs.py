@@ -6,7 +6,7 @@ from __future__ import annotations
 import collections
 from typing import Any
 
-from flightkit.bus.msgs import CameraInfo
+from flightkit.bus.image_msgs import CameraInfo
 from flightkit.datasets.base import CameraIntrinsics
 from flightkit.errors import EstimationError
 

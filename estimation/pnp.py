@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from estimation import _kernels, _pose_kernel
+from estimation import _pose_kernel
 from estimation.motion import Motion, failed_motion, make_T
 from flightkit.errors import EstimationError
 
@@ -205,13 +205,12 @@ def refine_pose(
         )
     if len(tw) != n:
         raise EstimationError(f"refine_pose got {n} points and {len(tw)} translation weights; give one per point")
-    if point_var is not None:
-        var = np.ascontiguousarray(point_var, dtype=np.float64).reshape(-1)
-        if len(var) != n or not fb_px_m > 0:
-            raise EstimationError(
-                f"refine_pose got {n} points, {len(var)} point variances and fb_px_m={fb_px_m}; "
-                "give one variance per point and the disparities' positive fx * baseline"
-            )
+    var = np.empty(0) if point_var is None else np.ascontiguousarray(point_var, dtype=np.float64).reshape(-1)
+    if point_var is not None and (len(var) != n or not fb_px_m > 0):
+        raise EstimationError(
+            f"refine_pose got {n} points, {len(var)} point variances and fb_px_m={fb_px_m}; "
+            "give one variance per point and the disparities' positive fx * baseline"
+        )
     if n < 4:
         return T_cur_ref
     # The start's rotation projected onto SO(3) (OpenCV's Rodrigues takes the nearest
@@ -222,18 +221,15 @@ def refine_pose(
         T0[:3, :3] = cv2.Rodrigues(cv2.Rodrigues(T0[:3, :3])[0])[0]
     # Per step: reprojection rows u, v and a disparity row where one is measured, their
     # Jacobian in a left perturbation [rho, phi], Huber weights, the normal equations, the
-    # 6x6 solve and the update, all in one compiled call (estimation._kernels).
-    if point_var is not None:
-        Tw: F64 = _pose_kernel.pose_gauss_newton_whitened(
-            X, T0, uv, disp, tw, var, fx, fy, cx, cy, float(fb_px_m), float(huber_px), int(iterations), _GN_STOP, 6
-        )
-        return Tw
-    T: F64 = _kernels.pose_gauss_newton(
+    # 6x6 solve and the update, all in one compiled call (estimation._pose_kernel); with
+    # point_var the rows are whitened first.
+    T: F64 = _pose_kernel.pose_gauss_newton(
         X,
         T0,
         uv,
         disp,
         tw,
+        var,
         fx,
         fy,
         cx,

@@ -5,7 +5,7 @@
 3. ask the supervisor (:func:`trajectories.supervisor.supervise`);
 4. on CONTINUE run the controller and replace the streamed setpoint; on HOLD send zero
    velocity; anything else raises :class:`FaultExit` for the fault reactor;
-5. return the cycle as a typed :class:`LogRow` (and append it to the flight log).
+5. return the cycle as a typed :class:`~trajectories.flightlog.LogRow` (and append it to the flight log).
 
 :meth:`ControlLoop.track` repeats ticks until a phase is done. It is driven by mocap: it
 wakes when a new pose arrives (so the setpoint follows the sample by microseconds), and at the
@@ -37,9 +37,10 @@ from flightkit.errors import LinkTimeout, MocapBodyMissing
 from flightkit.frames import Transform, Vec3Tuple
 from flightkit.link.base import FlightMode, VehicleLink, VelocitySetpoint
 from flightkit.mocap.base import MocapPose, MocapSource
-from trajectories.base import Pattern, Reference, with_acceleration
+from trajectories.base import Pattern, with_acceleration
 from trajectories.controller import SetpointKind, VelocityController
-from trajectories.flightlog import FlightLog, FlightSummary, PhaseStats
+from trajectories.flightlog import FlightLog, FlightSummary, LogRow, PhaseStats
+from trajectories.status import Status
 from trajectories.supervisor import (
     ACTION_OF,
     Action,
@@ -52,99 +53,9 @@ from trajectories.supervisor import (
 )
 from trajectories.takeoff import LiftOff
 
-__all__ = ["ControlLoop", "FaultExit", "LogRow", "Status"]
+__all__ = ["ControlLoop", "FaultExit"]
 
 logger = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True, slots=True)
-class Status:
-    """A snapshot for the live status line (given to ``on_status`` a few times a second).
-
-    Attributes:
-        t_s: flight time. phase: current phase. lap / laps: 1-based lap of the pattern.
-        pos_m: measured position (world ENU). err_m: tracking error. rate_hz: control rate.
-        action: supervisor action name. message: extra text (e.g. a countdown).
-    """
-
-    t_s: float
-    phase: str
-    lap: int = 0
-    laps: int = 0
-    pos_m: Vec3Tuple | None = None
-    err_m: float = math.nan
-    rate_hz: float = math.nan
-    action: str = "CONTINUE"
-    message: str = ""
-
-    def line(self) -> str:
-        p = (
-            "(  ---,   ---,   ---)"
-            if self.pos_m is None
-            else "({:5.2f}, {:5.2f}, {:5.2f})".format(*self.pos_m)
-        )
-        lap = f"lap {self.lap}/{self.laps}" if self.laps else "       "
-        extra = f"  {self.message}" if self.message else ""
-        act = "" if self.action == "CONTINUE" else f"  [{self.action}]"
-        return (
-            f"t={self.t_s:7.2f}s  {self.phase:<10} {lap}  pos {p}  "
-            f"err {'   ---' if math.isnan(self.err_m) else f'{self.err_m:6.3f}'} m  "
-            f"{'  ---' if math.isnan(self.rate_hz) else f'{self.rate_hz:5.0f}'} Hz{act}{extra}"
-        )
-
-
-@dataclass(frozen=True, slots=True)
-class LogRow:
-    """One control cycle, as logged (:data:`trajectories.flightlog.COLUMNS`).
-
-    Attributes:
-        t_s: flight time. stamp_ns: clock time. phase / lap / action: what the cycle did.
-        ref: the reference it tracked. pos_m / yaw_rad: the measured pose (world; None / NaN
-        without one). mocap_age_s: age of that pose (-1 without one). setpoint: what was sent
-        (or would have been, on a phase that only watches). err_m: tracking error (NaN when
-        not measured). cycle_s / cycle_cpu_s: wall and CPU time of the cycle. stages_s: the
-        pose's latency per :data:`~trajectories.flightlog.LATENCY_STAGES` stage (NaN when not known).
-    """
-
-    t_s: float
-    stamp_ns: int
-    phase: str
-    lap: int
-    action: Action
-    ref: Reference
-    pos_m: Vec3Tuple | None
-    yaw_rad: float
-    mocap_age_s: float
-    setpoint: VelocitySetpoint
-    err_m: float
-    cycle_s: float
-    cycle_cpu_s: float
-    stages_s: tuple[float, float, float] = (math.nan, math.nan, math.nan)
-
-    def values(self) -> tuple[object, ...]:
-        """The row in :data:`~trajectories.flightlog.COLUMNS` order."""
-        p = self.pos_m or (math.nan, math.nan, math.nan)
-        sp = self.setpoint
-        return (
-            round(self.t_s, 6),
-            self.stamp_ns,
-            self.phase,
-            self.ref.lap,
-            self.action.name,
-            *self.ref.pos_m,
-            self.ref.yaw_rad,
-            *self.ref.vel_m_s,
-            *p,
-            self.yaw_rad,
-            self.mocap_age_s,
-            sp.frame.value,
-            *sp.vel_m_s,
-            sp.yaw_rad if sp.yaw_rad is not None else math.nan,
-            sp.yaw_rate_rad_s if sp.yaw_rate_rad_s is not None else math.nan,
-            self.err_m,
-            self.cycle_s,
-            *self.stages_s,
-        )
 
 
 class FaultExit(Exception):

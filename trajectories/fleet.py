@@ -42,12 +42,12 @@ from flightkit.frames import Vec3Tuple
 from flightkit.link.base import VehicleLink
 from flightkit.mocap.base import MocapSource
 from trajectories.base import Pattern
-from trajectories.control_loop import Status
 from trajectories.controller import ControllerConfig
 from trajectories.flightlog import FlightLog, FlightSummary
 from trajectories.plan import PlanSettings
 from trajectories.runner import FlightRunner
 from trajectories.separation import Approach, FleetSafety, closest_approach, plan_separation
+from trajectories.status import Status
 from trajectories.supervisor import FaultKind, Geofence, SafetyConfig
 
 __all__ = ["Fleet", "FleetReport", "FleetVehicle"]

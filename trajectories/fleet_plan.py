@@ -44,10 +44,10 @@ from flightkit.frames import Vec3Tuple
 from flightkit.mocap.base import MocapSource
 from flightkit.settings import load_section, load_toml, setting
 from trajectories.base import Pattern, Reference
-from trajectories.control_loop import Status
 from trajectories.flightlog import FlightSummary
 from trajectories.plan import CircleSpec, LawnmowerSpec, PatternSpec, Plan, parse_plan
 from trajectories.separation import FleetSafety, plan_separation
+from trajectories.status import Status
 
 __all__ = [
     "FleetPlan",

@@ -1,10 +1,10 @@
 """Flight logs and summaries.
 
-A flight log is a CSV file with one row per control cycle: time, phase, lap, the reference,
-the mocap pose, the setpoint sent and the supervisor's action. Metadata (plan, vehicle,
-controller) is a JSON comment on the first line and each fault a ``# fault {...}`` comment
-line, so the file opens in any spreadsheet or ``numpy.genfromtxt(comments="#")`` and is read
-back with :func:`read_flight_log`.
+A flight log is a CSV file with one row per control cycle (:class:`LogRow`): time, phase, lap,
+the reference, the mocap pose, the setpoint sent and the supervisor's action. Metadata (plan,
+vehicle, controller) is a JSON comment on the first line and each fault a ``# fault {...}``
+comment line, so the file opens in any spreadsheet or ``numpy.genfromtxt(comments="#")`` and is
+read back with :func:`read_flight_log`.
 
 :class:`FlightSummary` is what a flight returns: per-phase RMS and max tracking error,
 duration, loop rate and faults; ``to_dict()`` gives the JSON summary.
@@ -23,7 +23,10 @@ import numpy as np
 import numpy.typing as npt
 
 from flightkit.errors import DatasetError, FlightkitError
-from trajectories.supervisor import Fault
+from flightkit.frames import Vec3Tuple
+from flightkit.link.base import VelocitySetpoint
+from trajectories.base import Reference
+from trajectories.supervisor import Action, Fault
 
 __all__ = [
     "COLUMNS",
@@ -31,6 +34,7 @@ __all__ = [
     "FlightLog",
     "FlightLogData",
     "FlightSummary",
+    "LogRow",
     "PhaseStats",
     "read_flight_log",
 ]
@@ -49,6 +53,60 @@ COLUMNS = (
     "capture_to_bus_s", "bus_to_runner_s", "runner_to_setpoint_s",
 )  # fmt: skip
 _MAGIC = "# flightkit flight log v1 "
+
+
+@dataclass(frozen=True, slots=True)
+class LogRow:
+    """One control cycle, as logged (:data:`trajectories.flightlog.COLUMNS`).
+
+    Attributes:
+        t_s: flight time. stamp_ns: clock time. phase / lap / action: what the cycle did.
+        ref: the reference it tracked. pos_m / yaw_rad: the measured pose (world; None / NaN
+        without one). mocap_age_s: age of that pose (-1 without one). setpoint: what was sent
+        (or would have been, on a phase that only watches). err_m: tracking error (NaN when
+        not measured). cycle_s / cycle_cpu_s: wall and CPU time of the cycle. stages_s: the
+        pose's latency per :data:`~trajectories.flightlog.LATENCY_STAGES` stage (NaN when not known).
+    """
+
+    t_s: float
+    stamp_ns: int
+    phase: str
+    lap: int
+    action: Action
+    ref: Reference
+    pos_m: Vec3Tuple | None
+    yaw_rad: float
+    mocap_age_s: float
+    setpoint: VelocitySetpoint
+    err_m: float
+    cycle_s: float
+    cycle_cpu_s: float
+    stages_s: tuple[float, float, float] = (math.nan, math.nan, math.nan)
+
+    def values(self) -> tuple[object, ...]:
+        """The row in :data:`~trajectories.flightlog.COLUMNS` order."""
+        p = self.pos_m or (math.nan, math.nan, math.nan)
+        sp = self.setpoint
+        return (
+            round(self.t_s, 6),
+            self.stamp_ns,
+            self.phase,
+            self.ref.lap,
+            self.action.name,
+            *self.ref.pos_m,
+            self.ref.yaw_rad,
+            *self.ref.vel_m_s,
+            *p,
+            self.yaw_rad,
+            self.mocap_age_s,
+            sp.frame.value,
+            *sp.vel_m_s,
+            sp.yaw_rad if sp.yaw_rad is not None else math.nan,
+            sp.yaw_rate_rad_s if sp.yaw_rate_rad_s is not None else math.nan,
+            self.err_m,
+            self.cycle_s,
+            *self.stages_s,
+        )
 
 
 @dataclass(slots=True)

@@ -22,10 +22,10 @@ from flightkit.errors import MocapError, SafetyAbort
 from flightkit.link.base import VehicleLink
 from flightkit.mocap.base import MocapSource
 from trajectories.base import Pattern
-from trajectories.control_loop import Status
 from trajectories.flightlog import FlightLog, FlightSummary
 from trajectories.plan import Plan
 from trajectories.runner import FlightRunner, pattern_in_fence
+from trajectories.status import Status
 
 __all__ = ["fly_plan", "open_lab_mocap"]
 

@@ -34,12 +34,13 @@ from flightkit.link.base import LandedState, VehicleLink, read_companion_loss
 from flightkit.mocap.base import MocapSource
 from trajectories.base import Pattern, PiecewisePattern, Reference, Turn
 from trajectories.circle import Circle
-from trajectories.control_loop import ControlLoop, Status
+from trajectories.control_loop import ControlLoop
 from trajectories.controller import ControllerConfig, SetpointKind, VelocityController
 from trajectories.fault_reactor import FaultReactor
 from trajectories.flightlog import FlightLog, FlightSummary
 from trajectories.hold import Hold
 from trajectories.plan import PlanSettings
+from trajectories.status import Status
 from trajectories.supervisor import Action, SafetyConfig, preflight_problems
 from trajectories.takeoff import Land, LiftOff, Takeoff
 from trajectories.waypoints import Waypoints

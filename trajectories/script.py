@@ -40,12 +40,12 @@ from flightkit.frames import Vec3Tuple
 from flightkit.link.base import VehicleLink
 from flightkit.mocap.base import MocapSource
 from trajectories.base import Pattern
-from trajectories.control_loop import Status
 from trajectories.controller import ControllerConfig
 from trajectories.flightlog import FlightLog, FlightSummary
 from trajectories.fly import open_lab_mocap
 from trajectories.plan import PlanSettings
 from trajectories.runner import FlightRunner
+from trajectories.status import Status
 from trajectories.supervisor import SafetyConfig
 
 __all__ = ["Flight"]

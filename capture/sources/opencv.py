@@ -40,8 +40,9 @@ import numpy.typing as npt
 import zenoh
 
 from capture.sources._runner import SourceThread
+from flightkit.bus.image_msgs import CameraInfo, CompressedImage
 from flightkit.bus.keys import Keys
-from flightkit.bus.msgs import CameraInfo, CompressedImage, Header
+from flightkit.bus.msg_base import Header
 from flightkit.bus.pubsub import BusPublisher
 from flightkit.bus.streams import CameraModel, CameraStream, has_subscribers, optical_frame_id
 from flightkit.clock import STAMP_DEVICE, STAMP_HOST, Clock

@@ -37,8 +37,9 @@ import zenoh
 
 from capture.sources._runner import SourceThread
 from capture.sources.realsense import depth_to_mm
+from flightkit.bus.image_msgs import CameraInfo, CompressedImage, Image
 from flightkit.bus.keys import Keys
-from flightkit.bus.msgs import CameraInfo, CompressedImage, Image, Odometry, PoseStamped, TransformStamped
+from flightkit.bus.pose_msgs import Odometry, PoseStamped, TransformStamped
 from flightkit.bus.pubsub import BusPublisher
 from flightkit.bus.streams import CameraModel, CameraStream, PosePublisher, has_subscribers, optical_frame_id
 from flightkit.clock import STAMP_DEVICE, STAMP_HOST, Clock

@@ -380,7 +380,7 @@ async def bus_pose_samples(session: Any, key: str, frames: WorldFrames) -> Async
     Raises:
         FrameError: a pose in a frame ``frames`` cannot place.
     """
-    from flightkit.bus.msgs import PoseStamped
+    from flightkit.bus.pose_msgs import PoseStamped
     from flightkit.bus.pubsub import BusSubscriber
     from flightkit.mocap.bus_source import pose_is_valid
 

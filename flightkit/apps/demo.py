@@ -35,10 +35,10 @@ from flightkit.clock import SimClock
 from flightkit.config import LabConfig
 from flightkit.datasets import open_sequence, write_tum
 from flightkit.datasets.recording import McapSequence
-from trajectories.control_loop import Status
 from trajectories.flightlog import FlightSummary
 from trajectories.fly import fly_plan
 from trajectories.plan import Plan, parse_plan
+from trajectories.status import Status
 
 __all__ = ["DemoResult", "short_plan", "run_demo"]
 

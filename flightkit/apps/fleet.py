@@ -13,8 +13,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 from flightkit.config import FleetVehicleConfig, LabConfig
-from trajectories.control_loop import Status
 from trajectories.fleet_plan import FleetPlan, FleetResult, fly_fleet_plan, is_fleet_plan, load_fleet_plan
+from trajectories.status import Status
 
 __all__ = ["FleetPlan", "FleetResult", "fly_fleet", "is_fleet_plan", "load_fleet_plan", "sim_fleet_config"]
 

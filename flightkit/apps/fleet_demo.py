@@ -21,8 +21,8 @@ from pathlib import Path
 
 from capture.export import ExportReport
 from flightkit.config import LabConfig
-from trajectories.control_loop import Status
 from trajectories.fleet_plan import FleetPlan, FleetResult
+from trajectories.status import Status
 
 __all__ = ["FleetDemoResult", "run_fleet_demo"]
 

@@ -12,11 +12,11 @@ from collections.abc import Callable
 from pathlib import Path
 
 from flightkit.config import Autopilot, LabConfig, LinkBackend, MocapSourceKind
-from trajectories.control_loop import Status
 from trajectories.flightlog import FlightSummary
 from trajectories.fly import fly_plan
 from trajectories.plan import Plan, load_plan
 from trajectories.plots import plot_flight_log
+from trajectories.status import Status
 
 __all__ = ["FlightSummary", "Plan", "Status", "fly", "lab_with_overrides", "load_plan", "plot_log"]
 

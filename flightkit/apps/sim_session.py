@@ -29,10 +29,10 @@ from flightkit.link.base import VehicleLink
 from flightkit.mocap.base import MocapSource
 from flightkit.sim.lab import SimLab
 from flightkit.sim.mocap import SimMocapSource
-from trajectories.control_loop import Status
 from trajectories.flightlog import FlightSummary
 from trajectories.fly import fly_plan
 from trajectories.plan import Plan
+from trajectories.status import Status
 
 if TYPE_CHECKING:
     from flightkit.sim.fleet import SimFleet

@@ -1,8 +1,8 @@
 """The message bus: Zenoh sessions, key naming, ROS 2 CDR messages, typed pub/sub.
 
-See ``docs/bus.md``. ``flightkit.bus.keys``, ``flightkit.bus.cdr`` and ``flightkit.bus.msgs``
-are pure (no Zenoh); the names re-exported here from ``session`` and ``pubsub`` import
-:mod:`zenoh` lazily, on first use.
+See ``docs/bus.md``. ``flightkit.bus.keys``, ``flightkit.bus.cdr`` and the messages
+(``msg_base``, ``pose_msgs``, ``image_msgs``, ``msgs``) are pure (no Zenoh); the names re-exported
+here from ``session`` and ``pubsub`` import :mod:`zenoh` lazily, on first use.
 """
 
 from __future__ import annotations

@@ -8,7 +8,8 @@ size (8 for ``float64``), counted from the end of the encapsulation header. Stri
 
 :class:`CdrWriter` appends to a ``bytearray``; :class:`CdrReader` reads from any buffer
 without copying (``uint8[]`` and ``float64[]`` come back as numpy views onto the payload).
-The message types built from these live in :mod:`flightkit.bus.msgs`.
+The message types built from these live in :mod:`flightkit.bus.pose_msgs` and
+:mod:`flightkit.bus.image_msgs` (the shared parts in :mod:`flightkit.bus.msg_base`).
 """
 
 from __future__ import annotations

@@ -109,7 +109,10 @@ def _type_name(msgtype: Any) -> str:
         return msgtype
     name = getattr(msgtype, "TYPE", None)
     if not isinstance(name, str):
-        raise BusError(f"{msgtype!r} is not a message type; pass a class from flightkit.bus.msgs or a type name")
+        raise BusError(
+            f"{msgtype!r} is not a message type; pass a message class (flightkit.bus.pose_msgs, image_msgs) "
+            "or a type name"
+        )
     return name
 
 
@@ -119,7 +122,8 @@ class BusPublisher:
     Args:
         session: an open Zenoh session.
         key: the key expression (no wildcards).
-        msgtype: a class from :mod:`flightkit.bus.msgs` or a full ROS 2 type name.
+        msgtype: a message class (:mod:`flightkit.bus.pose_msgs`, :mod:`flightkit.bus.image_msgs`)
+            or a full ROS 2 type name.
         reliable: ask for reliable delivery (TCP links are reliable anyway).
         drop_when_congested: drop samples instead of blocking when the network or a
             subscriber cannot keep up (images: True; mocap: False).
@@ -221,8 +225,8 @@ class BusPublisher:
         return seq
 
     def publish(self, msg: Any, out: bytearray | None = None) -> int:
-        """Encode ``msg`` (a :mod:`flightkit.bus.msgs` message) and send it, stamped with its
-        header stamp. Images encode into ``out`` when given (a reusable buffer)."""
+        """Encode ``msg`` (an instance of a class in :data:`flightkit.bus.msgs.MESSAGE_TYPES`) and
+        send it, stamped with its header stamp. Images encode into ``out`` when given (a reusable buffer)."""
         if getattr(msg, "TYPE", None) != self.msgtype:
             raise BusError(f"publisher on {self.key!r} sends {self.msgtype}, not {type(msg).__name__}")
         payload = msg.encode(out) if out is not None else msg.encode()

@@ -22,16 +22,10 @@ import numpy as np
 import numpy.typing as npt
 import zenoh
 
+from flightkit.bus.image_msgs import CameraInfo, CompressedImage, Image
 from flightkit.bus.keys import Keys
-from flightkit.bus.msgs import (
-    CameraInfo,
-    CompressedImage,
-    Header,
-    Image,
-    PoseStamped,
-    TFMessage,
-    TransformStamped,
-)
+from flightkit.bus.msg_base import Header
+from flightkit.bus.pose_msgs import PoseStamped, TFMessage, TransformStamped
 from flightkit.bus.pubsub import STAMP_HOST, BusPublisher
 from flightkit.clock import Clock
 from flightkit.errors import BusError

@@ -38,7 +38,9 @@ from mcap.reader import McapReader, make_reader
 from mcap.summary import Summary
 
 from flightkit.bus.cdr import CdrReader
-from flightkit.bus.msgs import CameraInfo, CompressedImage, Header, Image, PoseStamped, TFMessage
+from flightkit.bus.image_msgs import CameraInfo, CompressedImage, Image
+from flightkit.bus.msg_base import Header
+from flightkit.bus.pose_msgs import PoseStamped, TFMessage
 from flightkit.calibration.clock_sync import CLOCK_OFFSETS_RECORD, ClockOffsetEstimate, offsets_from_metadata
 from flightkit.calibration.result import METADATA_RECORD, CalibrationResult
 from flightkit.datasets.trajectory import Trajectory

@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from flightkit.bus.msgs import CameraInfo
+from flightkit.bus.image_msgs import CameraInfo
 from flightkit.calibration.result import CalibrationResult
 from flightkit.datasets.base import CameraIntrinsics, Frame, SequenceKind, StereoRectification
 from flightkit.datasets.files import poses_at

@@ -40,7 +40,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from flightkit.bus.msgs import CameraInfo
+from flightkit.bus.image_msgs import CameraInfo
 from flightkit.datasets.base import CameraIntrinsics, SequenceKind
 from flightkit.datasets.files import FileSequence, FrameFiles, poses_at, require
 from flightkit.datasets.trajectory import Trajectory, associate, parse_stamp_ns, read_tum

@@ -17,7 +17,7 @@ import math
 import zenoh
 
 from flightkit.bus.keys import Keys
-from flightkit.bus.msgs import PoseStamped
+from flightkit.bus.pose_msgs import PoseStamped
 from flightkit.bus.pubsub import BusSample, BusSubscriber
 from flightkit.clock import Clock
 from flightkit.errors import BusError

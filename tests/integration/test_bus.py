@@ -20,7 +20,9 @@ import numpy as np
 import pytest
 import zenoh
 
-from flightkit.bus import msgs as M
+from flightkit.bus.image_msgs import CameraInfo, Image
+from flightkit.bus.msg_base import Header
+from flightkit.bus.pose_msgs import Odometry, PoseStamped, TFMessage, TransformStamped
 from flightkit.bus.pubsub import _ATTACHMENT_V1 as _ATTACHMENT
 from flightkit.bus.pubsub import _MAGIC_V1 as _MAGIC
 from flightkit.bus.pubsub import BusPublisher, BusSample, BusSubscriber, cdr_encoding
@@ -64,7 +66,7 @@ def deliver(pub: BusPublisher, sub: BusSubscriber, stamp_ns: int, timeout_s: flo
     """Publish a pose until ``sub`` receives one (a fresh declaration can take a few ms to route)."""
     deadline = time.monotonic() + timeout_s
     while True:
-        pub.publish(M.PoseStamped(M.Header(stamp_ns, "m")))
+        pub.publish(PoseStamped(Header(stamp_ns, "m")))
         try:
             first = sub.get(timeout_s=0.02)
         except TimeoutError:
@@ -107,11 +109,11 @@ def test_pose_stream_between_two_sessions_in_order() -> None:
         with pair() as (a, b, _):
             with (
                 BusSubscriber(a, "uav1/mocap/*/pose") as sub,
-                BusPublisher(b, "uav1/mocap/uav1/pose", M.PoseStamped, reliable=True, express=True) as pub,
+                BusPublisher(b, "uav1/mocap/uav1/pose", PoseStamped, reliable=True, express=True) as pub,
             ):
                 first = deliver(pub, sub, 0)
                 for i in range(50):
-                    pub.publish(M.PoseStamped(M.Header(1_000 + i, "mocap"), (float(i), 0.0, 1.0)))
+                    pub.publish(PoseStamped(Header(1_000 + i, "mocap"), (float(i), 0.0, 1.0)))
                 got = []
                 async for s in sub:
                     got.append(s)
@@ -121,13 +123,13 @@ def test_pose_stream_between_two_sessions_in_order() -> None:
                 key, msgtype, seq, stamp_ns, payload, bus_ns, stamp_source = got[7]
                 assert (key, msgtype, seq, stamp_ns, stamp_source) == (
                     "uav1/mocap/uav1/pose",
-                    M.PoseStamped.TYPE,
+                    PoseStamped.TYPE,
                     first.seq + 8,
                     1_007,
                     "host",
                 )
                 assert abs(bus_ns - time.time_ns()) < 60 * 10**9  # put on the bus now (wall clock)
-                assert M.PoseStamped.decode(payload).position_m == (7.0, 0.0, 1.0)
+                assert PoseStamped.decode(payload).position_m == (7.0, 0.0, 1.0)
                 assert sub.missed() == 0 and sub.received("uav1/mocap/uav1/pose") == 51
                 with pytest.raises(TimeoutError, match="no message on"):
                     await sub.recv(timeout_s=0.05)
@@ -150,7 +152,7 @@ def test_default_config_peers_find_each_other_without_multicast() -> None:
         # s2 and s3 (both joiners) talk to each other.
         link_up(s3, s2)  # the two joiners reach each other (through the mesh gossip builds)
         sub = stack.enter_context(BusSubscriber(s3, "lab/**"))
-        pub = stack.enter_context(BusPublisher(s2, "lab/x", M.PoseStamped))
+        pub = stack.enter_context(BusPublisher(s2, "lab/x", PoseStamped))
         assert deliver(pub, sub, 1).stamp_ns == 1
         # The first process exits: the others keep talking, and a newcomer takes the port over.
         s1.close()
@@ -167,9 +169,9 @@ def test_default_config_peers_find_each_other_without_multicast() -> None:
 def test_sequence_gaps_are_counted_per_key_and_stream() -> None:
     with pair() as (a, b, _):
         with BusSubscriber(a, "t/**") as sub:
-            raw = b.declare_publisher("t/a", encoding=cdr_encoding(M.PoseStamped.TYPE))
+            raw = b.declare_publisher("t/a", encoding=cdr_encoding(PoseStamped.TYPE))
             raw_b = b.declare_publisher("t/b")
-            payload = bytes(M.PoseStamped(M.Header(0, "m")).encode())
+            payload = bytes(PoseStamped(Header(0, "m")).encode())
             primes = iter(range(1, 10_000))  # stream 99: consecutive, so priming adds no gap
             prime(lambda: raw.put(payload, attachment=_ATTACHMENT.pack(_MAGIC, next(primes), 0, 99)), sub, "t/a")
             prime(lambda: raw_b.put(b"\x00\x01\x00\x00"), sub, "t/b")
@@ -192,11 +194,11 @@ def test_sequence_gaps_are_counted_per_key_and_stream() -> None:
 
 def test_full_queue_drops_the_oldest_and_counts_it() -> None:
     with pair() as (a, b, _):
-        with BusSubscriber(a, "q", maxlen=5) as sub, BusPublisher(b, "q", M.PoseStamped) as pub:
+        with BusSubscriber(a, "q", maxlen=5) as sub, BusPublisher(b, "q", PoseStamped) as pub:
             first = deliver(pub, sub, 0)
             r0, o0 = sub.received(), sub.overflowed
             for i in range(20):
-                pub.publish(M.PoseStamped(M.Header(i, "m")))
+                pub.publish(PoseStamped(Header(i, "m")))
             wait_until(lambda: sub.received() == r0 + 20, what="20 samples")
             assert sub.overflowed - o0 == 15 and sub.missed() == 0
             assert [sub.get(1.0).seq for _ in range(5)] == [first.seq + k for k in (16, 17, 18, 19, 20)]
@@ -205,15 +207,15 @@ def test_full_queue_drops_the_oldest_and_counts_it() -> None:
 
 def test_publisher_policies() -> None:
     with pair() as (_, b, _port):
-        img = BusPublisher(b, "uav1/camera/color/image", M.Image, reliable=False, drop_when_congested=True)
-        pose = BusPublisher(b, "uav1/mocap/uav1/pose", M.PoseStamped, express=True)
+        img = BusPublisher(b, "uav1/camera/color/image", Image, reliable=False, drop_when_congested=True)
+        pose = BusPublisher(b, "uav1/mocap/uav1/pose", PoseStamped, express=True)
         assert img._pub.congestion_control == zenoh.CongestionControl.DROP
         assert img._pub.reliability == zenoh.Reliability.BEST_EFFORT
         assert pose._pub.congestion_control == zenoh.CongestionControl.BLOCK
         assert pose._pub.reliability == zenoh.Reliability.RELIABLE
         assert str(pose._pub.encoding) == "application/cdr;geometry_msgs/msg/PoseStamped"
         with pytest.raises(BusError, match="sends sensor_msgs/msg/Image, not PoseStamped"):
-            img.publish(M.PoseStamped(M.Header()))
+            img.publish(PoseStamped(Header()))
         img.close()
         img.close()
         with pytest.raises(BusError, match="is closed"):
@@ -225,15 +227,17 @@ _CHILD = textwrap.dedent(
     """
     import sys, time
     import numpy as np
-    from flightkit.bus import msgs as M
+    from flightkit.bus.image_msgs import Image
+    from flightkit.bus.msg_base import Header
+    from flightkit.bus.pose_msgs import PoseStamped
     from flightkit.bus.pubsub import BusPublisher
     from flightkit.bus.session import open_session
     from flightkit.config import BusConfig
 
     port, n_pose, n_img = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
     s = open_session(BusConfig(connect=(f"tcp/127.0.0.1:{port}",), listen=("tcp/127.0.0.1:0",)))
-    pose = BusPublisher(s, "uav1/mocap/uav1/pose", M.PoseStamped, express=True)
-    img = BusPublisher(s, "uav1/camera/color/image", M.Image, reliable=False, drop_when_congested=True)
+    pose = BusPublisher(s, "uav1/mocap/uav1/pose", PoseStamped, express=True)
+    img = BusPublisher(s, "uav1/camera/color/image", Image, reliable=False, drop_when_congested=True)
     # handshake: probe until the parent acknowledges, so no sample is sent before the link is up
     acked = []
     ack = s.declare_subscriber("probe/ack", lambda _s: acked.append(1))
@@ -245,12 +249,12 @@ _CHILD = textwrap.dedent(
         probe.put(b"")
         time.sleep(0.01)
     for i in range(n_pose):
-        pose.publish(M.PoseStamped(M.Header(i, "mocap"), (float(i), 2.0, 3.0)))
+        pose.publish(PoseStamped(Header(i, "mocap"), (float(i), 2.0, 3.0)))
     buf = bytearray()
     frame = np.empty((480, 848, 3), np.uint8)
     for i in range(n_img):
         frame[...] = i
-        img.publish(M.Image.from_array(M.Header(i, "cam"), frame, "rgb8"), out=buf)
+        img.publish(Image.from_array(Header(i, "cam"), frame, "rgb8"), out=buf)
     print("done", flush=True)
     sys.stdin.read()  # keep the session open until the parent has everything
     s.close()
@@ -278,14 +282,14 @@ def test_subprocess_publisher_to_in_process_subscriber() -> None:
         try:
             got = [await poses.recv(timeout_s=15.0) for _ in range(n_pose)]
             assert [g.seq for g in got] == list(range(1, n_pose + 1))
-            assert M.PoseStamped.decode(got[-1].payload).position_m == (n_pose - 1.0, 2.0, 3.0)
+            assert PoseStamped.decode(got[-1].payload).position_m == (n_pose - 1.0, 2.0, 3.0)
             assert proc.stdout is not None and (await asyncio.to_thread(proc.stdout.readline)).strip() == "done"
             wait_until(lambda: images.received() + images.missed() >= n_img, timeout_s=10.0, what="images")
             frames = [images.try_get() for _ in range(images.received())]
             assert frames and all(f is not None for f in frames)
             for f in frames:
                 assert f is not None
-                im = M.Image.decode(f.payload)
+                im = Image.decode(f.payload)
                 arr = im.array()
                 assert arr.shape == (480, 848, 3) and (im.height, im.width, im.encoding) == (480, 848, "rgb8")
                 assert int(arr[0, 0, 0]) == f.seq - 1 == im.header.stamp_ns and int(arr.max()) == int(arr.min())
@@ -313,11 +317,11 @@ def test_mcap_with_our_schemas_opens_in_mcap_ros2_and_rosbags(tmp_path: Path) ->
     from rosbags.highlevel import AnyReader
 
     path = tmp_path / "bus.mcap"
-    pose = M.PoseStamped(M.Header(1_700_000_000_000_000_123, "mocap"), (1.0, 2.0, 3.0), (0.0, 0.0, 0.6, 0.8))
-    img = M.Image.from_array(M.Header(1_700_000_000_000_000_456, "cam"), np.full((4, 6, 3), 9, np.uint8), "rgb8")
-    info = M.CameraInfo.from_intrinsics(M.Header(7, "cam"), 6, 4, 3.0, 3.0, 2.5, 1.5)
-    tf = M.TFMessage((M.TransformStamped(M.Header(8, "world"), "body", (1.0, 0.0, 0.0)),))
-    odom = M.Odometry(M.Header(9, "world"), "body", (4.0, 5.0, 6.0))
+    pose = PoseStamped(Header(1_700_000_000_000_000_123, "mocap"), (1.0, 2.0, 3.0), (0.0, 0.0, 0.6, 0.8))
+    img = Image.from_array(Header(1_700_000_000_000_000_456, "cam"), np.full((4, 6, 3), 9, np.uint8), "rgb8")
+    info = CameraInfo.from_intrinsics(Header(7, "cam"), 6, 4, 3.0, 3.0, 2.5, 1.5)
+    tf = TFMessage((TransformStamped(Header(8, "world"), "body", (1.0, 0.0, 0.0)),))
+    odom = Odometry(Header(9, "world"), "body", (4.0, 5.0, 6.0))
     msgs = [("/pose", pose), ("/image", img), ("/info", info), ("/tf", tf), ("/odom", odom)]
     with path.open("wb") as fh:
         w = Writer(fh)
@@ -414,12 +418,12 @@ def test_zenoh_config_file_is_merged_and_access_control_applies(tmp_path: Path) 
         with open_session(BusConfig(connect=(f"tcp/127.0.0.1:{port}",), listen=("tcp/127.0.0.1:0",))) as other:
             secret = BusSubscriber(router_side, "uav1/secret/**")  # declared first: routed first if allowed
             ok = BusSubscriber(router_side, "uav1/public/**")
-            pub_secret = BusPublisher(other, "uav1/secret/x", M.PoseStamped)
-            pub_ok = BusPublisher(other, "uav1/public/x", M.PoseStamped)
+            pub_secret = BusPublisher(other, "uav1/secret/x", PoseStamped)
+            pub_ok = BusPublisher(other, "uav1/public/x", PoseStamped)
             deliver(pub_ok, ok, 0)
             for i in range(5):
-                pub_secret.publish(M.PoseStamped(M.Header(i, "m")))
-                pub_ok.publish(M.PoseStamped(M.Header(i, "m")))
+                pub_secret.publish(PoseStamped(Header(i, "m")))
+                pub_ok.publish(PoseStamped(Header(i, "m")))
             wait_until(lambda: ok.received("uav1/public/x") >= 6, what="public samples")
             assert secret.received() == 0  # denied by the file's ACL
             for x in (ok, secret, pub_ok, pub_secret):

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 from mcap.writer import CompressionType, Writer
 
-from flightkit.bus.msgs import PoseStamped
+from flightkit.bus.pose_msgs import PoseStamped
 from flightkit.calibration import METADATA_RECORD, CalibrationResult, transform_difference
 from flightkit.cli.main import main
 from flightkit.datasets.mcap_reader import RecordingReader, transform_to_json

@@ -16,7 +16,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from capture.recorder import Compression, Recorder, StreamSample
-from flightkit.bus.msgs import CameraInfo, Header, Image, PoseStamped, schema_text
+from flightkit.bus.image_msgs import CameraInfo, Image
+from flightkit.bus.msg_base import Header, schema_text
+from flightkit.bus.pose_msgs import PoseStamped
 from flightkit.calibration import CalibrationResult, transform_difference
 from flightkit.cli.main import main
 from flightkit.datasets.mcap_reader import transform_to_json

@@ -17,8 +17,9 @@ from rosbags.highlevel import AnyReader
 from capture.bus_recorder import BusRecorder, recording_metadata
 from capture.config import CaptureConfig
 from capture.export import export_recording
+from flightkit.bus.image_msgs import Image
 from flightkit.bus.keys import Keys
-from flightkit.bus.msgs import Image, TFMessage
+from flightkit.bus.pose_msgs import TFMessage
 from flightkit.bus.session import open_session
 from flightkit.clock import LockstepClock
 from flightkit.config import BusConfig, CameraConfig, LabConfig, load_config

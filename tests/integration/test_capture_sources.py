@@ -24,17 +24,10 @@ from capture.recorder import Compression, Recorder, StreamSample
 from capture.sources.mocap import MocapBridge
 from capture.sources.opencv import OpenCVCameraPublisher
 from capture.sources.replay import DatasetReplayPublisher, McapReplayPublisher
+from flightkit.bus.image_msgs import CameraInfo, CompressedImage, Image
 from flightkit.bus.keys import Keys
-from flightkit.bus.msgs import (
-    CameraInfo,
-    CompressedImage,
-    Header,
-    Image,
-    PoseStamped,
-    TFMessage,
-    TransformStamped,
-    schema_text,
-)
+from flightkit.bus.msg_base import Header, schema_text
+from flightkit.bus.pose_msgs import PoseStamped, TFMessage, TransformStamped
 from flightkit.bus.session import open_session
 from flightkit.clock import SimClock, WallClock
 from flightkit.config import BusConfig

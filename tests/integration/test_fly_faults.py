@@ -31,10 +31,10 @@ from flightkit.config import Autopilot, LabConfig
 from flightkit.errors import MocapBodyMissing, SafetyAbort
 from flightkit.link.base import FlightMode
 from flightkit.link.mavlink import MavlinkLink
-from trajectories.control_loop import Status
 from trajectories.flightlog import FlightSummary, read_flight_log
 from trajectories.fly import fly_plan
 from trajectories.plan import Plan, load_plan
+from trajectories.status import Status
 from trajectories.supervisor import Action, Fault
 
 REPO = Path(__file__).resolve().parents[2]

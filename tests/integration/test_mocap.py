@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from flightkit.bus.keys import Keys
-from flightkit.bus.msgs import PoseStamped
+from flightkit.bus.pose_msgs import PoseStamped
 from flightkit.bus.pubsub import BusSubscriber
 from flightkit.bus.session import open_session
 from flightkit.clock import LockstepClock, SimClock
@@ -182,7 +182,7 @@ def test_a_pose_in_an_unknown_frame_fails_the_source_with_the_frames_name() -> N
     a, b = _pair()
 
     async def main() -> None:
-        from flightkit.bus.msgs import Header
+        from flightkit.bus.msg_base import Header
         from flightkit.bus.pubsub import BusPublisher
 
         async with BusMocapSource(a, keys, clock, WorldFrames(T_WORLD_MOCAP)) as src:

@@ -9,7 +9,8 @@ import pytest
 
 from capture.recorder import Recorder, StreamSample
 from estimation.report.reporter import read_mcap_samples
-from flightkit.bus.msgs import PoseStamped, schema_text
+from flightkit.bus.msg_base import schema_text
+from flightkit.bus.pose_msgs import PoseStamped
 from flightkit.datasets.mcap_reader import transform_to_json
 from flightkit.errors import DatasetError, FrameError
 from flightkit.frames import Transform

@@ -11,7 +11,8 @@ import pytest
 
 from capture.sources.opencv import parse_device
 from capture.sources.realsense import camera_model_from_intrinsics, depth_to_mm, import_realsense
-from flightkit.bus.msgs import CameraInfo, Header
+from flightkit.bus.image_msgs import CameraInfo
+from flightkit.bus.msg_base import Header
 from flightkit.errors import CaptureError
 
 

@@ -1,4 +1,5 @@
-"""CDR codecs of flightkit.bus.msgs: round-trips, and bytes cross-checked against rosbags.
+"""CDR codecs of the bus messages (flightkit.bus.pose_msgs, image_msgs, msg_base): round-trips,
+and bytes cross-checked against rosbags.
 
 rosbags (``rosbags.typesys``) is an independent CDR implementation with the real ROS 2
 Humble message definitions: our payloads must equal its serialisation byte for byte, it
@@ -16,8 +17,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from flightkit.bus import msgs as M
 from flightkit.bus.cdr import CdrReader, CdrWriter
+from flightkit.bus.image_msgs import CameraInfo, CompressedImage, Image
+from flightkit.bus.msg_base import Header
+from flightkit.bus.msgs import MESSAGE_TYPES, decode_message
+from flightkit.bus.pose_msgs import Odometry, PoseStamped, TFMessage, TransformStamped
 from flightkit.errors import BusError
 from flightkit.frames import Transform
 
@@ -53,23 +57,23 @@ stamps = st.integers(min_value=0, max_value=2**31 * 1_000_000_000 - 1)
 def test_pose_stamped_matches_rosbags_bytes(
     stamp_ns: int, frame: str, p: tuple[float, ...], q: tuple[float, ...]
 ) -> None:
-    ours = M.PoseStamped(M.Header(stamp_ns, frame), p, q)  # type: ignore[arg-type]
+    ours = PoseStamped(Header(stamp_ns, frame), p, q)  # type: ignore[arg-type]
     ref = T["geometry_msgs/msg/PoseStamped"](header=ros_header(stamp_ns, frame), pose=ros_pose(p, q))
-    assert bytes(ours.encode()) == ros_bytes(ref, M.PoseStamped.TYPE)
-    assert M.PoseStamped.decode(bytes(ours.encode())) == ours
+    assert bytes(ours.encode()) == ros_bytes(ref, PoseStamped.TYPE)
+    assert PoseStamped.decode(bytes(ours.encode())) == ours
 
 
 def test_pose_stamped_transform_round_trip() -> None:
     T_a_b = Transform.from_xyz_euler_deg([1.0, -2.0, 0.5], "xyz", [10.0, -20.0, 135.0])
-    msg = M.PoseStamped.from_transform(1_700_000_000_123_456_789, "mocap", T_a_b)
-    back = M.PoseStamped.decode(msg.encode())
-    assert back.header == M.Header(1_700_000_000_123_456_789, "mocap")
+    msg = PoseStamped.from_transform(1_700_000_000_123_456_789, "mocap", T_a_b)
+    back = PoseStamped.decode(msg.encode())
+    assert back.header == Header(1_700_000_000_123_456_789, "mocap")
     assert back.to_transform().almost_equal(T_a_b, 1e-12, 1e-12)
 
 
 def test_rosbags_reads_our_pose() -> None:
-    msg = M.PoseStamped(M.Header(5_000_000_007, "world"), (1.0, 2.0, 3.0), (0.0, 0.0, 0.6, 0.8))
-    ref = TS.deserialize_cdr(bytes(msg.encode()), M.PoseStamped.TYPE)
+    msg = PoseStamped(Header(5_000_000_007, "world"), (1.0, 2.0, 3.0), (0.0, 0.0, 0.6, 0.8))
+    ref = TS.deserialize_cdr(bytes(msg.encode()), PoseStamped.TYPE)
     assert (ref.header.stamp.sec, ref.header.stamp.nanosec, ref.header.frame_id) == (5, 7, "world")
     assert (ref.pose.position.x, ref.pose.position.z, ref.pose.orientation.w) == (1.0, 3.0, 0.8)
 
@@ -92,7 +96,7 @@ def test_rosbags_reads_our_pose() -> None:
 def test_image_matches_rosbags_and_round_trips(encoding: str, shape: tuple[int, ...], dtype: type) -> None:
     rng = np.random.default_rng(1)
     arr = (rng.random(shape) * 1000).astype(dtype)
-    img = M.Image.from_array(M.Header(42_000_000_001, "cam"), arr, encoding)
+    img = Image.from_array(Header(42_000_000_001, "cam"), arr, encoding)
     payload = img.encode()
     ref = T["sensor_msgs/msg/Image"](
         header=ros_header(42_000_000_001, "cam"),
@@ -103,8 +107,8 @@ def test_image_matches_rosbags_and_round_trips(encoding: str, shape: tuple[int, 
         step=img.step,
         data=arr.reshape(-1).view(np.uint8),
     )
-    assert bytes(payload) == ros_bytes(ref, M.Image.TYPE)
-    back = M.Image.decode(bytes(payload))
+    assert bytes(payload) == ros_bytes(ref, Image.TYPE)
+    back = Image.decode(bytes(payload))
     out = back.array()
     assert out.dtype == np.dtype(dtype) and out.shape == arr.shape
     np.testing.assert_array_equal(out, arr)
@@ -112,16 +116,16 @@ def test_image_matches_rosbags_and_round_trips(encoding: str, shape: tuple[int, 
 
 def test_image_decode_is_a_view_and_encode_reuses_the_buffer() -> None:
     arr = np.arange(480 * 848 * 3, dtype=np.uint32).astype(np.uint8).reshape(480, 848, 3)
-    img = M.Image.from_array(M.Header(1, "cam"), arr, "rgb8")
+    img = Image.from_array(Header(1, "cam"), arr, "rgb8")
     buf = bytearray()
     first = img.encode(buf)
     assert first is buf
     addr = np.frombuffer(buf, np.uint8).__array_interface__["data"][0]
     arr2 = arr[::-1].copy()
-    second = M.Image.from_array(M.Header(2, "cam"), arr2, "rgb8").encode(buf)
+    second = Image.from_array(Header(2, "cam"), arr2, "rgb8").encode(buf)
     assert second is buf and np.frombuffer(buf, np.uint8).__array_interface__["data"][0] == addr
     payload = bytes(buf)
-    back = M.Image.decode(payload)
+    back = Image.decode(payload)
     view = back.array()
     assert not view.flags.owndata and view.base is not None  # no copy of the pixels
     np.testing.assert_array_equal(view, arr2)
@@ -133,35 +137,35 @@ def test_image_with_padded_rows() -> None:
     ref = T["sensor_msgs/msg/Image"](
         header=ros_header(0, "c"), height=3, width=4, encoding="mono8", is_bigendian=0, step=6, data=rows.reshape(-1)
     )
-    back = M.Image.decode(ros_bytes(ref, M.Image.TYPE))
+    back = Image.decode(ros_bytes(ref, Image.TYPE))
     np.testing.assert_array_equal(back.array(), rows[:, :4])
 
 
 def test_image_from_noncontiguous_and_bigendian_arrays() -> None:
     base = np.arange(10 * 12, dtype=np.uint16).reshape(10, 12)
     crop = base[2:8, 3:9]  # not contiguous
-    back = M.Image.decode(M.Image.from_array(M.Header(), crop, "mono16").encode()).array()
+    back = Image.decode(Image.from_array(Header(), crop, "mono16").encode()).array()
     np.testing.assert_array_equal(back, crop)
     be = base.astype(">u2")
-    back = M.Image.decode(M.Image.from_array(M.Header(), be, "16UC1").encode()).array()
+    back = Image.decode(Image.from_array(Header(), be, "16UC1").encode()).array()
     np.testing.assert_array_equal(back, base)
 
 
 def test_image_rejects_mismatched_encoding() -> None:
     with pytest.raises(BusError, match="does not fit image encoding 'rgb8'"):
-        M.Image.from_array(M.Header(), np.zeros((4, 4), np.uint8), "rgb8")
+        Image.from_array(Header(), np.zeros((4, 4), np.uint8), "rgb8")
     with pytest.raises(BusError, match="not supported"):
-        M.Image.from_array(M.Header(), np.zeros((4, 4), np.uint8), "weird9")
+        Image.from_array(Header(), np.zeros((4, 4), np.uint8), "weird9")
 
 
 def test_compressed_image_matches_rosbags() -> None:
     data = bytes(range(200)) * 3
-    ours = M.CompressedImage(M.Header(3, "cam"), "jpeg", data)
+    ours = CompressedImage(Header(3, "cam"), "jpeg", data)
     ref = T["sensor_msgs/msg/CompressedImage"](
         header=ros_header(3, "cam"), format="jpeg", data=np.frombuffer(data, np.uint8)
     )
-    assert bytes(ours.encode()) == ros_bytes(ref, M.CompressedImage.TYPE)
-    back = M.CompressedImage.decode(bytes(ours.encode()))
+    assert bytes(ours.encode()) == ros_bytes(ref, CompressedImage.TYPE)
+    back = CompressedImage.decode(bytes(ours.encode()))
     assert back.format == "jpeg" and back.data.tobytes() == data
 
 
@@ -169,8 +173,8 @@ def test_compressed_image_matches_rosbags() -> None:
 
 
 def test_camera_info_matches_rosbags_and_round_trips() -> None:
-    ours = M.CameraInfo.from_intrinsics(
-        M.Header(9, "cam_left"),
+    ours = CameraInfo.from_intrinsics(
+        Header(9, "cam_left"),
         640,
         480,
         320.0,
@@ -194,16 +198,16 @@ def test_camera_info_matches_rosbags_and_round_trips() -> None:
         binning_y=0,
         roi=T["sensor_msgs/msg/RegionOfInterest"](x_offset=1, y_offset=2, height=3, width=4, do_rectify=True),
     )
-    assert bytes(ours.encode()) == ros_bytes(ref, M.CameraInfo.TYPE)
-    assert M.CameraInfo.decode(ours.encode()) == ours
+    assert bytes(ours.encode()) == ros_bytes(ref, CameraInfo.TYPE)
+    assert CameraInfo.decode(ours.encode()) == ours
 
 
 def test_tf_message_matches_rosbags_and_round_trips() -> None:
-    a = M.TransformStamped(M.Header(1, "world"), "body", (1.0, 2.0, 3.0), (0.0, 0.0, 0.0, 1.0))
-    b = M.TransformStamped.from_transform(
+    a = TransformStamped(Header(1, "world"), "body", (1.0, 2.0, 3.0), (0.0, 0.0, 0.0, 1.0))
+    b = TransformStamped.from_transform(
         2, "body", "camera", Transform.from_xyz_euler_deg([0.08, 0.0, -0.02], "xz", [135.0, 90.0])
     )
-    ours = M.TFMessage((a, b))
+    ours = TFMessage((a, b))
     ros_tfs = []
     for t in (a, b):
         ros_tfs.append(
@@ -217,15 +221,15 @@ def test_tf_message_matches_rosbags_and_round_trips() -> None:
             )
         )
     ref = T["tf2_msgs/msg/TFMessage"](transforms=ros_tfs)
-    assert bytes(ours.encode()) == ros_bytes(ref, M.TFMessage.TYPE)
-    assert M.TFMessage.decode(ours.encode()) == ours
-    assert M.TFMessage.decode(M.TFMessage().encode()) == M.TFMessage()
+    assert bytes(ours.encode()) == ros_bytes(ref, TFMessage.TYPE)
+    assert TFMessage.decode(ours.encode()) == ours
+    assert TFMessage.decode(TFMessage().encode()) == TFMessage()
 
 
 def test_odometry_matches_rosbags_and_round_trips() -> None:
     cov = tuple(float(i) for i in range(36))
-    ours = M.Odometry(
-        M.Header(77, "odom"),
+    ours = Odometry(
+        Header(77, "odom"),
         "base_link",
         (1.0, 2.0, 3.0),
         (0.0, 0.0, 0.6, 0.8),
@@ -248,16 +252,16 @@ def test_odometry_matches_rosbags_and_round_trips() -> None:
             covariance=np.array(tuple(reversed(cov))),
         ),
     )
-    assert bytes(ours.encode()) == ros_bytes(ref, M.Odometry.TYPE)
-    assert M.Odometry.decode(ours.encode()) == ours
+    assert bytes(ours.encode()) == ros_bytes(ref, Odometry.TYPE)
+    assert Odometry.decode(ours.encode()) == ours
 
 
 # ----------------------------------------------------------------------------- schemas and errors
 
 
-@pytest.mark.parametrize("msgtype", sorted(M.MESSAGE_TYPES))
+@pytest.mark.parametrize("msgtype", sorted(MESSAGE_TYPES))
 def test_schema_text_parses_to_the_ros2_definitions(msgtype: str) -> None:
-    cls = M.MESSAGE_TYPES[msgtype]
+    cls = MESSAGE_TYPES[msgtype]
     parsed = get_types_from_msg(cls.SCHEMA, msgtype)
     assert msgtype in parsed
     for name, (_consts, fields) in parsed.items():
@@ -267,7 +271,7 @@ def test_schema_text_parses_to_the_ros2_definitions(msgtype: str) -> None:
 
 
 def test_schema_lists_each_dependency_once() -> None:
-    text = M.TFMessage.SCHEMA
+    text = TFMessage.SCHEMA
     assert text.startswith("geometry_msgs/TransformStamped[] transforms\n")
     deps = [line[5:] for line in text.splitlines() if line.startswith("MSG: ")]
     assert len(deps) == len(set(deps))
@@ -283,16 +287,16 @@ def test_schema_lists_each_dependency_once() -> None:
 
 
 def test_decode_errors_are_bus_errors() -> None:
-    payload = bytes(M.PoseStamped(M.Header(1, "mocap")).encode())
+    payload = bytes(PoseStamped(Header(1, "mocap")).encode())
     with pytest.raises(BusError, match="disagree on the message type"):
-        M.PoseStamped.decode(payload[:-8])
+        PoseStamped.decode(payload[:-8])
     with pytest.raises(BusError, match="little-endian CDR header"):
-        M.PoseStamped.decode(b"\x00\x00\x00\x00" + payload[4:])
+        PoseStamped.decode(b"\x00\x00\x00\x00" + payload[4:])
     with pytest.raises(BusError, match="fewer than the 4-byte CDR header"):
-        M.PoseStamped.decode(b"\x00")
+        PoseStamped.decode(b"\x00")
     with pytest.raises(BusError, match="known types"):
-        M.decode_message("foo_msgs/msg/Bar", payload)
-    assert isinstance(M.decode_message(M.PoseStamped.TYPE, payload), M.PoseStamped)
+        decode_message("foo_msgs/msg/Bar", payload)
+    assert isinstance(decode_message(PoseStamped.TYPE, payload), PoseStamped)
 
 
 def test_writer_alignment_counts_from_after_the_header() -> None:

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from estimation import _kernels
+from estimation import _kernels, _pose_kernel
 from estimation.pnp import refine_pose
 from flightkit.errors import EstimationError
 
@@ -413,7 +413,7 @@ def test_warm_up_runs_each_method_through_its_estimation_path(method: str) -> No
     assert [p.quality for p in poses] == [Quality.INIT] + [Quality.GOOD] * 4
     # The texture moves 2 px a frame at 250 px focal length and ~2 m: 16 mm a frame, 64 mm in all.
     assert float(np.linalg.norm(poses[-1].T_world_camera[:3, 3])) == pytest.approx(0.064, rel=0.1)
-    assert _kernels.pose_gauss_newton.signatures and _kernels.project.signatures  # loaded, ready for live frames
+    assert _pose_kernel.pose_gauss_newton.signatures and _kernels.project.signatures  # loaded, ready for live frames
     if method == "rgbd-essential":
         from estimation import five_point
 

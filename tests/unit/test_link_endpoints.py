@@ -93,7 +93,7 @@ def test_a_udp_read_takes_the_queued_datagrams_of_one_sender() -> None:
     to whoever sent."""
     import socket
 
-    from flightkit.link.endpoints import open_transport
+    from flightkit.link.transports import open_transport
 
     transport = open_transport(parse_endpoint("udpin:127.0.0.1:0"))
     a, b = socket.socket(socket.AF_INET, socket.SOCK_DGRAM), socket.socket(socket.AF_INET, socket.SOCK_DGRAM)

@@ -9,7 +9,8 @@ import pytest
 from estimation.live import LiveVoConfig, external_pose_from_frame, vision_uncertainty
 from estimation.live_inputs import FramePairer, intrinsics_from_camera_info
 from estimation.pipeline import FramePose, Quality
-from flightkit.bus.msgs import CameraInfo, Header
+from flightkit.bus.image_msgs import CameraInfo
+from flightkit.bus.msg_base import Header
 from flightkit.errors import EstimationError
 from flightkit.frames import Transform
 from flightkit.link.mavlink import encode_vision_position_estimate

@@ -1,8 +1,8 @@
-"""The live status line of a flight (trajectories.control_loop.Status)."""
+"""The live status line of a flight (trajectories.status.Status)."""
 
 import math
 
-from trajectories.control_loop import Status
+from trajectories.status import Status
 
 
 def test_the_rate_and_error_read_dashes_until_known() -> None:

@@ -3,7 +3,7 @@
 Several vehicles can sit behind one endpoint: a telemetry radio on a serial port, or a router
 (mavlink-router, MAVProxy, the simulator's ``--shared-link``) forwarding several system ids
 to one UDP port. The process opens each endpoint once: :class:`MavlinkConnection` owns the
-transport (:mod:`flightkit.link.endpoints`), pymavlink's MAVLink 2 codec (ArduPilot dialect, a
+transport (:mod:`flightkit.link.transports`), pymavlink's MAVLink 2 codec (ArduPilot dialect, a
 superset of common) for each direction, signing when a key is configured, the **writer thread**
 (once several vehicles share the link, senders only queue messages; it packs them, with
 sequence numbers and signatures, and sends what queued together, so no control loop waits for a
@@ -36,10 +36,11 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from flightkit.clock import Clock
 from flightkit.errors import EndpointError, LinkError
-from flightkit.link.endpoints import Endpoint, Transport, open_transport
+from flightkit.link.endpoints import Endpoint
 from flightkit.link.mavlink.encoding import MAV_AUTOPILOT_INVALID, MAV_STATE_ACTIVE
 from flightkit.link.mavlink.telemetry import VehicleState
 from flightkit.link.signing import SigningSettings, apply_signing, signing_timestamp
+from flightkit.link.transports import Transport, open_transport
 
 __all__ = ["LinkIdentity", "MavlinkConnection", "VehicleChannel"]
 
