@@ -28,8 +28,10 @@ Per run it prints:
 ``--synthetic`` adds the three lab patterns (the simulated camera, exact ground truth, rendered
 before timing at each size: ``bench/_synthetic.py``).
 
+``--features 450,600`` adds ``stereo#N`` and ``stereo@far+offset#N`` rows with N corners per keyframe.
+
 Run: .venv/bin/python bench/vo.py [--only kitti06,tum_rpy] [--sizes native,640x480] [--rounds 1]
-     [--no-sift] [--ba 4] [--synthetic] [--json out.json] [--cpu N]
+     [--no-sift] [--ba 4] [--features 450,600] [--synthetic] [--json out.json] [--cpu N]
 """
 
 from __future__ import annotations
@@ -58,13 +60,22 @@ from bench._synthetic import SYNTHETIC, prerendered  # noqa: E402
 from estimation.baselines import run_plain  # noqa: E402
 from estimation.evaluation import Alignment, ape, lab_errors, rpe  # noqa: E402
 from estimation.lab_sift import run_baseline  # noqa: E402
-from estimation.pipeline import FlowOptions, Method, Quality, VoOptions, VoResult, run_vo, warm_up  # noqa: E402
+from estimation.pipeline import (  # noqa: E402
+    FlowOptions,
+    Method,
+    PnpOptions,
+    Quality,
+    VoOptions,
+    VoResult,
+    run_vo,
+    warm_up,
+)
 from flightkit.datasets.registry import open_sequence  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 RGBD = ["rgbd-pnp", "rgbd-essential", "rgbd-kabsch", "rgbd-kabsch@weigh", "rgbd-kabsch@revisit", "flow"]
-STEREO = ["stereo", "stereo@exact", "stereo@far", "stereo@offset"]
+STEREO = ["stereo", "stereo@exact", "stereo@ransac", "stereo@far", "stereo@offset"]
 SEQUENCES: dict[str, tuple[str, list[str], str]] = {
     # key: (folder, flightkit methods, plain baseline)
     "kitti06": ("kitti06_stereo", STEREO + ["stereo@far+offset", "stereo@far+offset+exact", "flow"], "plain-stereo"),
@@ -86,6 +97,7 @@ VARIANTS: dict[str, VoOptions] = {
     "weigh": VoOptions(point_uncertainty=True),  # RGB-D: the polish weighs each point by its keyframe depth's noise
     "exact": VoOptions(point_uncertainty=False),  # stereo: the polish takes the keyframe points as exact
     "far+offset+exact": VoOptions(far_points="weighted", stereo_offset=True, point_uncertainty=False),
+    "ransac": VoOptions(estimator=PnpOptions(prior_gate_px=0.0)),  # stereo before the speed pass: RANSAC every step
 }
 """Row-name suffixes (``method@variant``) and their options."""
 
@@ -157,6 +169,9 @@ def main() -> int:
     ap.add_argument("--rounds", type=int, default=1, help="runs per method; the speed is their median")
     ap.add_argument("--no-sift", action="store_true", help="skip the lab's SIFT pipeline (slow at native size)")
     ap.add_argument("--ba", type=int, default=0, help="also run with local BA over N keyframes")
+    ap.add_argument(
+        "--features", default="", help="comma-separated corner budgets: also run the stereo rows with each"
+    )
     ap.add_argument("--only", help="comma-separated sequence keys")
     ap.add_argument("--synthetic", action="store_true", help="add the synthetic lab-pattern sequences")
     ap.add_argument("--json", type=Path)
@@ -195,6 +210,9 @@ def main() -> int:
                 plan.append((name, m, opts))
                 if args.ba and Method(m) is not Method.FLOW and not variant:
                     plan.append((f"{m}+ba{args.ba}", m, replace(opts, ba_window=args.ba)))
+                if m == "stereo" and variant in ("", "far+offset"):
+                    for n in (int(v) for v in args.features.split(",") if v):
+                        plan.append((f"{name}#{n}", m, replace(opts, max_features=n)))
             plan += [(b, b, None) for b in plain]
             if not args.no_sift:
                 plan.append(("sift-pnp (lab)", "sift", None))

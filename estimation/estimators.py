@@ -3,8 +3,8 @@
 Each takes the front end's tracks of the keyframe's 3D points (:class:`Tracks`, from
 ``estimation.frontend.FrontEnd``) and returns the keyframe-to-current motion:
 
-* :class:`PnpEstimator` (``stereo``, ``rgbd-pnp``): PnP + RANSAC on the keyframe points (rgbd-pnp:
-  SQPnP without RANSAC when the prediction explains the tracks), then the depth polish;
+* :class:`PnpEstimator` (``stereo``, ``rgbd-pnp``): PnP + RANSAC on the keyframe points (SQPnP
+  without RANSAC when the prediction explains the tracks), then the depth polish;
 * :class:`EssentialEstimator` (``rgbd-essential``): the essential matrix keyframe to current
   (from the prediction or the 5-point RANSAC), its metric scale and cheirality from depth,
   checked on the keyframe points' reprojection; PnP when the parallax is too small;
@@ -251,8 +251,9 @@ class PnpEstimator:
         opts: VoOptions,
         po: PnpOptions,
         method: Method,
+        paths: Counter[str],
     ) -> None:
-        self.geo, self.polisher, self.opts, self.po = geo, polisher, opts, po
+        self.geo, self.polisher, self.opts, self.po, self.paths = geo, polisher, opts, po, paths
         self.stereo = method is Method.STEREO
 
     def _rigid_subset(self, t: Tracks) -> npt.NDArray[np.bool_]:
@@ -277,7 +278,9 @@ class PnpEstimator:
         n = len(t.px_cur)
         sel = self._rigid_subset(t) if self.stereo and po.inliers == "rigidity" else np.ones(n, dtype=bool)
         idx = np.flatnonzero(sel)
-        if po.prior_gate_px > 0 and o.refine_with_depth and not self.stereo:
+        # rgbd-pnp tries the prediction from the start (at rest the identity is right); stereo once a
+        # motion was measured (its first step, often a large one, goes to RANSAC).
+        if po.prior_gate_px > 0 and o.refine_with_depth and (t.has_prior or not self.stereo):
             # The constant-velocity prediction usually explains the tracks: then no RANSAC.
             m_prior = self.polisher.pnp_from_prior(
                 t.X_kf[idx],
@@ -292,10 +295,12 @@ class PnpEstimator:
                 None if t.var_kf is None else t.var_kf[idx],
             )
             if m_prior is not None:
+                self.paths["pnp-prior"] += 1
                 mask = np.zeros(n, dtype=bool)
                 mask[idx] = m_prior.inliers
                 self.polisher.remap(idx)
                 return Motion(m_prior.T_cur_ref, mask, True)
+        self.paths["pnp-ransac"] += 1
         m = pnp(
             t.X_kf[idx],
             t.und_cur[idx],
@@ -343,4 +348,4 @@ def keyframe_estimator(
     if isinstance(mo, KabschOptions):
         return KabschEstimator(geo, polisher, opts, mo, paths, rng)
     assert isinstance(mo, PnpOptions)
-    return PnpEstimator(geo, polisher, opts, mo, method)
+    return PnpEstimator(geo, polisher, opts, mo, method, paths)

@@ -33,9 +33,10 @@ Methods (``Method``):
 Front end of the keyframe methods: grid-bucketed FAST corners, tracked by pyramidal LK with
 a forward-backward check from frame to frame, the tracks predicted by a constant-velocity
 prior; when tracking fails (fast motion) ORB features are matched between the keyframe
-and the current image instead (Hamming norm, ratio test). ``rgbd-pnp`` skips RANSAC (and
-the backward LK pass for tracks that land at their prediction) when the prior already
-explains the tracks (``VoOptions.pnp_prior_*``). Every estimate passes a sanity
+and the current image instead (Hamming norm, ratio test). ``rgbd-pnp`` and ``stereo`` skip
+RANSAC when the prior already explains the tracks (``PnpOptions.prior_gate_px``; the RGB-D
+methods also skip the backward LK pass for tracks that land at their prediction,
+``VoOptions.klt_trust_prior_px``). Every estimate passes a sanity
 check (speed, turn rate, inliers); a failed one is replaced by the constant-velocity
 prediction and flagged ``Quality.PREDICTED``, never silently dropped. Keyframes are chosen
 by parallax and motion (:class:`~estimation.keyframes.KeyframePolicy`); an optional local

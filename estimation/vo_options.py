@@ -37,8 +37,8 @@ class PnpOptions:
     """``stereo`` and ``rgbd-pnp``: PnP on the keyframe's 3D points.
 
     Attributes:
-        prior_gate_px, prior_min_fraction: rgbd-pnp skips RANSAC when this fraction of the tracks
-            lies within the gate (px) of the prediction (0: always RANSAC).
+        prior_gate_px, prior_min_fraction: skip RANSAC when this fraction of the tracks lies within
+            the gate (px) of the prediction (0: always RANSAC; stereo once a motion was measured).
         inliers: ``"ransac"`` or ``"rigidity"`` (stereo: max-clique of rigid pairs first).
     """
 
