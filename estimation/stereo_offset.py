@@ -61,11 +61,6 @@ class DisparityOffset:
         b = self._num / (max(self._den, 0.0) + self._prior_info)
         return float(np.clip(b, -self.max_offset_px, self.max_offset_px))
 
-    @property
-    def waiting(self) -> bool:
-        """No observation is waiting for its pair (the start, or after :meth:`forget`)."""
-        return self._prev is None
-
     def forget(self) -> None:
         """The next observation starts a new pair (after a frame without measurements)."""
         self._prev = None
