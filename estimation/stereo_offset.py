@@ -104,7 +104,10 @@ class DisparityOffset:
         # Each equation's noise: the tracks' in both frames, the second's scaled by g = Z1 / Z0.
         rho = np.maximum(d0 + self.offset_px, 1e-3) / self.fb
         g = q[:, 2] + t_prior[2] * rho
-        w_noise = np.tile(1.0 / np.sqrt(1.0 + g * g), 2)
+        # The first frame's disparity d0 is measured too (errors in variables): its noise, about the
+        # tracks', moves equation k by d(y - X theta)/d(d0) = -s_k (t_k - m1_k t_z).
+        lever = np.concatenate([(f[k] / self.fb) * (t_prior[k] - m1[:, k] * t_prior[2]) for k in range(2)])
+        w_noise = 1.0 / np.sqrt(np.tile(1.0 + g * g, 2) + lever * lever)
         w2 = w_noise * w_noise  # squared weights of the (iteratively reweighted, Huber) normal equations
         sigma = 1.0
         try:
