@@ -186,7 +186,7 @@ class VisualOdometry:
             self._estimator = keyframe_estimator(self.method, self.geo, self.polisher, o, self.path_counts, self.rng)
         rig = self.geo.rig
         self.offset = (
-            DisparityOffset(rig.fx, rig.fy, rig.cx, rig.cy, rig.baseline_m)
+            DisparityOffset(rig.fx, rig.fy, rig.cx, rig.cy, rig.baseline_m, track_sigma_px=o.track_sigma_px)
             if stereo and rig is not None and o.stereo_offset
             else None
         )
