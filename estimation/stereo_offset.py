@@ -81,7 +81,9 @@ class DisparityOffset:
         if len(common) < 20:
             return
         moments = self._fit(prev[1][ia], prev[2][ia], und_px[ib], T_cur_prev)
-        if moments is not None:
+        # A pair that claims no information, or an offset beyond the clip on its own, is noise of an
+        # ill-conditioned fit (a planar scene: every track at one depth), not a measurement.
+        if moments is not None and moments[1] > 0 and abs(moments[0]) <= self.max_offset_px * moments[1]:
             self._num += moments[0]
             self._den += moments[1]
             self.pairs += 1

@@ -83,3 +83,21 @@ def test_on_a_render_with_little_image_motion_the_offset_stays_at_zero() -> None
         flows.append(float(np.median(np.linalg.norm(uv1[ok] - uv0[ok], axis=1))))
     assert est.pairs == 8 and float(np.median(flows)) < 1.0
     assert abs(est.offset_px) < 0.02
+
+
+def test_a_planar_scene_says_nothing_of_the_offset() -> None:
+    # Every track at one depth (a wall, a floor seen straight on): image motion and disparity are
+    # proportional for all of them, so the offset cannot be told from the translation's length; the
+    # ill-conditioned pair fits are skipped instead of driving the estimate to its clip.
+    rng = np.random.default_rng(5)
+    n = 300
+    X = np.c_[rng.uniform(-4.0, 4.0, n), rng.uniform(-1.5, 1.5, n), np.full(n, 6.0)]
+    est = DisparityOffset(FX, FX, CX, CY, B)
+    T_step = make_T(np.eye(3), np.array([-0.2, 0.0, 0.0]))
+    ids = np.arange(n, dtype=np.int64)
+    for k in range(8):
+        uv = np.c_[FX * X[:, 0] / X[:, 2] + CX, FX * X[:, 1] / X[:, 2] + CY] + rng.normal(0, 0.1, (n, 2))
+        d = FX * B / X[:, 2] + rng.normal(0, 0.1, n)
+        est.observe(ids, uv, d, T_step if k else None)
+        X = X @ T_step[:3, :3].T + T_step[:3, 3]
+    assert abs(est.offset_px) < 0.05
