@@ -21,7 +21,7 @@ SYNTHETIC: dict[str, str] = {f"sim_{name}": name for name in SYNTHETIC_PATTERNS}
 """Bench/test key -> lab pattern name."""
 
 METHODS = ["rgbd-pnp", "rgbd-essential", "rgbd-kabsch"]
-METHODS += ["stereo", "stereo@exact", "stereo@ransac", "stereo@far", "stereo@far+offset", "flow"]
+METHODS += ["stereo", "stereo@exact", "stereo@ransac", "stereo@drop", "flow"]
 """Every method runs on the synthetic sequences: they carry colour, depth and a stereo pair."""
 
 RATE_HZ = 15.0

@@ -75,10 +75,10 @@ from flightkit.datasets.registry import open_sequence  # noqa: E402
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 RGBD = ["rgbd-pnp", "rgbd-essential", "rgbd-kabsch", "rgbd-kabsch@weigh", "rgbd-kabsch@revisit", "flow"]
-STEREO = ["stereo", "stereo@exact", "stereo@ransac", "stereo@far", "stereo@offset"]
+STEREO = ["stereo", "stereo@exact", "stereo@ransac", "stereo@drop", "stereo@far", "stereo@offset"]
 SEQUENCES: dict[str, tuple[str, list[str], str]] = {
     # key: (folder, flightkit methods, plain baseline)
-    "kitti06": ("kitti06_stereo", STEREO + ["stereo@far+offset", "stereo@far+offset+exact", "flow"], "plain-stereo"),
+    "kitti06": ("kitti06_stereo", STEREO + ["flow"], "plain-stereo"),
     "tum_rpy": ("tum_fr1rpy_000_199", RGBD, "plain-rgbd"),
     "7scenes": ("sevenscenes_tsdf50", RGBD, "plain-rgbd"),
     "tum_case1": ("tum_fr1xyz_pairs/case_1", RGBD, "plain-rgbd"),
@@ -90,13 +90,12 @@ SEQUENCES: dict[str, tuple[str, list[str], str]] = {
 VARIANTS: dict[str, VoOptions] = {
     "": VoOptions(),
     "stereo": VoOptions(estimator=FlowOptions(depth="stereo")),  # flow with per-point stereo depth
-    "offset": VoOptions(stereo_offset=True),  # stereo with the disparity offset estimated online
-    "far": VoOptions(far_points="weighted"),  # stereo keeping the points beyond the depth cap, mostly for the rotation
-    "far+offset": VoOptions(far_points="weighted", stereo_offset=True),
+    "drop": VoOptions(far_points="drop", stereo_offset=False),  # stereo before the eleventh pass
+    "offset": VoOptions(far_points="drop"),  # stereo: far points dropped, the disparity offset estimated online
+    "far": VoOptions(stereo_offset=False),  # stereo: far points weighted, no disparity offset
     "revisit": VoOptions(revisit_keyframes=30),  # RGB-D returning to kept keyframes the camera sees again
     "weigh": VoOptions(point_uncertainty=True),  # RGB-D: the polish weighs each point by its keyframe depth's noise
     "exact": VoOptions(point_uncertainty=False),  # stereo: the polish takes the keyframe points as exact
-    "far+offset+exact": VoOptions(far_points="weighted", stereo_offset=True, point_uncertainty=False),
     "ransac": VoOptions(estimator=PnpOptions(prior_gate_px=0.0)),  # stereo before the speed pass: RANSAC every step
 }
 """Row-name suffixes (``method@variant``) and their options."""
@@ -210,7 +209,7 @@ def main() -> int:
                 plan.append((name, m, opts))
                 if args.ba and Method(m) is not Method.FLOW and not variant:
                     plan.append((f"{m}+ba{args.ba}", m, replace(opts, ba_window=args.ba)))
-                if m == "stereo" and variant in ("", "far+offset"):
+                if m == "stereo" and not variant:
                     for n in (int(v) for v in args.features.split(",") if v):
                         plan.append((f"{name}#{n}", m, replace(opts, max_features=n)))
             plan += [(b, b, None) for b in plain]

@@ -146,7 +146,7 @@ class CameraGeometry:
             return X, ok
         if right is None or left is None or self.rig is None:
             raise EstimationError("this VO method needs depth or a stereo pair in every frame")
-        keep_far = self.opts.far_points != "drop"
+        keep_far = self.opts.far_points not in (None, "drop")
         disp, ok = sparse_disparity(
             left,
             right,
@@ -182,7 +182,7 @@ class CameraGeometry:
         to :meth:`near_depth_m`, beyond it 0 (``"rotation"``) or near depth / z (``"weighted"``);
         None when every point has a full say."""
         mode = self.opts.far_points
-        if mode == "drop" or self.rig is None:
+        if mode in (None, "drop") or self.rig is None:
             return None
         z_near = self.near_depth_m()
         if mode == "rotation":

@@ -155,9 +155,16 @@ class VisualOdometry:
         self.opts = o = replace(given, estimator=given.estimator_options(self.method)).for_camera(
             math.sqrt(intrinsics.fx * intrinsics.fy), intrinsics.width
         )
-        if self.method is Method.STEREO and not baseline_m:
-            raise EstimationError("method 'stereo' needs a stereo baseline; the sequence has no right camera")
+        # The stereo defaults (None): far points weighted and the disparity offset estimated for
+        # ``stereo``; ``flow``'s stereo depth drops far points (docs/estimation-log.md, eleventh pass).
         stereo = self.method is Method.STEREO
+        self.opts = o = replace(
+            o,
+            far_points=o.far_points or ("weighted" if stereo else "drop"),
+            stereo_offset=stereo if o.stereo_offset is None else o.stereo_offset,
+        )
+        if stereo and not baseline_m:
+            raise EstimationError("method 'stereo' needs a stereo baseline; the sequence has no right camera")
         self.geo = CameraGeometry(
             intrinsics, baseline_m, depth_intrinsics, o, use_depth_images=not stereo, depth_registered=depth_registered
         )
@@ -186,7 +193,7 @@ class VisualOdometry:
             self._estimator = keyframe_estimator(self.method, self.geo, self.polisher, o, self.path_counts, self.rng)
         rig = self.geo.rig
         self.offset = (
-            DisparityOffset(rig.fx, rig.fy, rig.cx, rig.cy, rig.baseline_m)
+            DisparityOffset(rig.fx, rig.fy, rig.cx, rig.cy, rig.baseline_m, track_sigma_px=o.track_sigma_px)
             if stereo and rig is not None and o.stereo_offset
             else None
         )

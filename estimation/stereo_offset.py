@@ -35,6 +35,8 @@ class DisparityOffset:
         baseline_m: the stereo baseline, m.
         prior_sigma_px: standard deviation of the zero-mean prior on the offset, px.
         max_offset_px: the estimate is clipped to +-this, px.
+        track_sigma_px: the tracks' noise, px: a pair whose translation changes its tracks' image
+            motion by less than this per pixel of offset (over all its tracks) is skipped.
     """
 
     def __init__(
@@ -46,9 +48,11 @@ class DisparityOffset:
         baseline_m: float,
         prior_sigma_px: float = 0.5,
         max_offset_px: float = 1.0,
+        track_sigma_px: float = 0.5,
     ) -> None:
         self.fx, self.fy, self.cx, self.cy, self.fb = fx, fy, cx, cy, fx * baseline_m
         self.max_offset_px = max_offset_px
+        self.track_sigma_px = track_sigma_px
         self._prior_info = 1.0 / prior_sigma_px**2
         self._num = 0.0  # sum over pairs of t' M c (bias-corrected): b x the information
         self._den = 0.0  # sum over pairs of t' M t (bias-corrected): the information (1/px^2)
@@ -77,7 +81,9 @@ class DisparityOffset:
         if len(common) < 20:
             return
         moments = self._fit(prev[1][ia], prev[2][ia], und_px[ib], T_cur_prev)
-        if moments is not None:
+        # A pair that claims no information, or an offset beyond the clip on its own, is noise of an
+        # ill-conditioned fit (a planar scene: every track at one depth), not a measurement.
+        if moments is not None and moments[1] > 0 and abs(moments[0]) <= self.max_offset_px * moments[1]:
             self._num += moments[0]
             self._den += moments[1]
             self.pairs += 1
@@ -87,6 +93,11 @@ class DisparityOffset:
         fit of ``t`` and ``c = b t`` (``M``: the information of ``c``), each unbiased in expectation."""
         n = len(uv0)
         R, t_prior = T_cur_ref[:3, :3], T_cur_ref[:3, 3]
+        # A 1 px offset moves a track's image motion by |t| / B px (its translational flow over its
+        # disparity): below the tracks' noise over all n tracks the pair cannot see the offset, and
+        # its fit would turn any unmodelled common image motion (a camera at rest) into one.
+        if np.linalg.norm(t_prior) * self.fx / self.fb * np.sqrt(n) < self.track_sigma_px:
+            return None
         q = np.c_[(uv0[:, 0] - self.cx) / self.fx, (uv0[:, 1] - self.cy) / self.fy, np.ones(n)] @ R.T
         m1 = np.c_[(uv1[:, 0] - self.cx) / self.fx, (uv1[:, 1] - self.cy) / self.fy]
         # Rigid motion at inverse depth rho = (d0 + b) / fb, exactly:

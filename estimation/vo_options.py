@@ -234,7 +234,8 @@ class VoOptions:
         max_depth_baselines: stereo points farther than this many baselines are not used (inf: all kept).
         min_disparity_px: stereo points with a smaller disparity are not used, px (the matching noise floor).
         far_points: stereo points beyond the depth cap or minimum disparity: ``"drop"`` them, keep them
-            for the ``"rotation"`` only, or keep them with a say in the translation ``"weighted"`` by cap / depth.
+            for the ``"rotation"`` only, or keep them with a say in the translation ``"weighted"`` by cap / depth
+            (None: ``"weighted"`` for ``stereo``, ``"drop"`` for ``flow``'s stereo depth).
         refine_with_depth: polish poses on the current frame's depth too (``pnp.refine_pose``).
         depth_sigma_per_m2: depth images' noise: sigma_z = this x z^2 (Kinect v1: 1.425e-3 /m,
             Khoshelham & Elberink 2012); weighs registered depth in the polish (0: the fixed 0.1 m weight).
@@ -245,8 +246,8 @@ class VoOptions:
             None: on for ``stereo``, off for the RGB-D methods).
         fuse_depth: fuse each frame's depth of tracked points into their 3D estimates.
         stereo_fb_check: also check left-right stereo matches right-to-left.
-        stereo_offset: stereo: estimate the pair's disparity offset online (``estimation.stereo_offset``; off:
-            see docs/estimation-log.md).
+        stereo_offset: ``stereo``: estimate the pair's disparity offset online (``estimation.stereo_offset``;
+            None: on).
         orb_fallback: match ORB against the keyframe when tracking fails (``FALLBACK``).
         keyframes: the keyframe policy (:class:`~estimation.keyframes.KeyframePolicy`).
         ba_window: local bundle adjustment over this many keyframes (0: off).
@@ -279,7 +280,7 @@ class VoOptions:
     init_min_depth_fraction: float = 0.0
     min_disparity_px: float = 3.0
     max_depth_baselines: float = 60.0
-    far_points: str = "drop"
+    far_points: str | None = None
     refine_with_depth: bool = True
     depth_sigma_per_m2: float = 1.425e-3
     track_sigma_px: float = 0.5
@@ -287,7 +288,7 @@ class VoOptions:
     point_uncertainty: bool | None = None
     fuse_depth: bool = True
     stereo_fb_check: bool = False
-    stereo_offset: bool = False
+    stereo_offset: bool | None = None
     orb_fallback: bool = True
     keyframes: KeyframePolicy = field(default_factory=KeyframePolicy)
     ba_window: int = 0
@@ -341,7 +342,7 @@ class VoOptions:
     def __post_init__(self) -> None:
         if self.pnp_method not in ("iterative", "epnp", "sqpnp"):
             raise EstimationError(f"VoOptions.pnp_method is {self.pnp_method!r}; use iterative, epnp or sqpnp")
-        if self.far_points not in ("drop", "rotation", "weighted"):
+        if self.far_points not in (None, "drop", "rotation", "weighted"):
             raise EstimationError(f"VoOptions.far_points is {self.far_points!r}; use 'drop', 'rotation' or 'weighted'")
         if self.pnp_kernel not in (None, "p3p", "ap3p"):
             raise EstimationError(f"VoOptions.pnp_kernel is {self.pnp_kernel!r}; use 'ap3p', 'p3p' or None")
