@@ -150,7 +150,7 @@ class Image:
     @classmethod
     def decode(cls, payload: bytes | bytearray | memoryview) -> Image:
         """Decode; ``data`` is a view onto ``payload`` (keep the payload alive and unchanged)."""
-        return decode_payload(cls, payload)  # type: ignore[no-any-return]
+        return decode_payload(cls.TYPE, cls.read, payload)
 
 
 def _assemble(prefix: bytearray, src: npt.NDArray[Any], out: bytearray | None) -> bytearray:
@@ -200,7 +200,7 @@ class CompressedImage:
 
     @classmethod
     def decode(cls, payload: bytes | bytearray | memoryview) -> CompressedImage:
-        return decode_payload(cls, payload)  # type: ignore[no-any-return]
+        return decode_payload(cls.TYPE, cls.read, payload)
 
 
 @dataclass(frozen=True, slots=True)
@@ -279,5 +279,5 @@ class CameraInfo:
 
     @classmethod
     def decode(cls, payload: bytes | bytearray | memoryview) -> CameraInfo:
-        return decode_payload(cls, payload)  # type: ignore[no-any-return]
+        return decode_payload(cls.TYPE, cls.read, payload)
 

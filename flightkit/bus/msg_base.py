@@ -14,11 +14,14 @@ The message classes: :mod:`flightkit.bus.pose_msgs` (poses, transforms, odometry
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, ClassVar, Protocol, Self
+from typing import ClassVar, Protocol, Self, TypeVar
 
 from flightkit.bus.cdr import CdrReader, CdrWriter
 from flightkit.errors import BusError
+
+_M = TypeVar("_M")
 
 __all__ = [
     "Header",
@@ -142,7 +145,6 @@ class Header:
         return Header(sec * 1_000_000_000 + nanosec, r.string())
 
 
-def decode_payload(cls: Any, payload: bytes | bytearray | memoryview) -> Any:
-    """``cls.read`` of a CDR payload of ``cls.TYPE`` (the ``decode`` of every message class)."""
-    r = CdrReader(payload, cls.TYPE)
-    return cls.read(r)
+def decode_payload(type_name: str, read: Callable[[CdrReader], _M], payload: bytes | bytearray | memoryview) -> _M:
+    """``read`` of a CDR payload of the message type ``type_name`` (the ``decode`` of every message class)."""
+    return read(CdrReader(payload, type_name))

@@ -74,7 +74,7 @@ class PoseStamped:
 
     @classmethod
     def decode(cls, payload: bytes | bytearray | memoryview) -> PoseStamped:
-        return decode_payload(cls, payload)  # type: ignore[no-any-return]
+        return decode_payload(cls.TYPE, cls.read, payload)
 
 
 @dataclass(frozen=True, slots=True)
@@ -117,7 +117,7 @@ class TransformStamped:
 
     @classmethod
     def decode(cls, payload: bytes | bytearray | memoryview) -> TransformStamped:
-        return decode_payload(cls, payload)  # type: ignore[no-any-return]
+        return decode_payload(cls.TYPE, cls.read, payload)
 
 
 @dataclass(frozen=True, slots=True)
@@ -148,7 +148,7 @@ class TFMessage:
 
     @classmethod
     def decode(cls, payload: bytes | bytearray | memoryview) -> TFMessage:
-        return decode_payload(cls, payload)  # type: ignore[no-any-return]
+        return decode_payload(cls.TYPE, cls.read, payload)
 
 
 _ZERO36: tuple[float, ...] = (0.0,) * 36
@@ -206,5 +206,5 @@ class Odometry:
 
     @classmethod
     def decode(cls, payload: bytes | bytearray | memoryview) -> Odometry:
-        return decode_payload(cls, payload)  # type: ignore[no-any-return]
+        return decode_payload(cls.TYPE, cls.read, payload)
 
