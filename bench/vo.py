@@ -28,7 +28,7 @@ Per run it prints:
 ``--synthetic`` adds the three lab patterns (the simulated camera, exact ground truth, rendered
 before timing at each size: ``bench/_synthetic.py``).
 
-``--features 450,600`` adds ``stereo#N`` and ``stereo@far+offset#N`` rows with N corners per keyframe.
+``--features 450,600`` adds ``stereo#N`` rows with N corners per keyframe.
 
 Run: .venv/bin/python bench/vo.py [--only kitti06,tum_rpy] [--sizes native,640x480] [--rounds 1]
      [--no-sift] [--ba 4] [--features 450,600] [--synthetic] [--json out.json] [--cpu N]

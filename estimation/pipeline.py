@@ -54,7 +54,7 @@ import math
 import time
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import cv2
@@ -67,7 +67,7 @@ from estimation.flow_vo import FlowEstimator
 from estimation.frontend import CameraGeometry, FrontEnd, disparity_variance
 from estimation.local_ba import LocalBundleWindow
 from estimation.motion import Motion, invert, median
-from estimation.polish import Meas, PosePolisher
+from estimation.polish import PosePolisher
 from estimation.pose_track import PoseTrack
 from estimation.revisit import KeyframeStore, StoredKeyframe
 from estimation.stereo_offset import DisparityOffset
@@ -152,17 +152,12 @@ class VisualOdometry:
             raise EstimationError(f"unknown VO method {method!r}; use one of {names}") from exc
         given = options or VoOptions()
         # Pixel options are given at REF_FOCAL_PX: this camera's pixels from here on.
-        self.opts = o = replace(given, estimator=given.estimator_options(self.method)).for_camera(
+        # The method's defaults for options left None; pixel options are given at REF_FOCAL_PX:
+        # this camera's pixels from here on.
+        self.opts = o = given.for_method(self.method).for_camera(
             math.sqrt(intrinsics.fx * intrinsics.fy), intrinsics.width
         )
-        # The stereo defaults (None): far points weighted and the disparity offset estimated for
-        # ``stereo``; ``flow``'s stereo depth drops far points (docs/estimation-log.md, eleventh pass).
         stereo = self.method is Method.STEREO
-        self.opts = o = replace(
-            o,
-            far_points=o.far_points or ("weighted" if stereo else "drop"),
-            stereo_offset=stereo if o.stereo_offset is None else o.stereo_offset,
-        )
         if stereo and not baseline_m:
             raise EstimationError("method 'stereo' needs a stereo baseline; the sequence has no right camera")
         self.geo = CameraGeometry(
@@ -182,7 +177,6 @@ class VisualOdometry:
         self.path_counts: Counter[str] = Counter()
         self.front = FrontEnd(self.geo, o, stereo)
         self.polisher = PosePolisher(self.geo, o, stereo)
-        self._point_uncertainty = o.point_uncertainty if o.point_uncertainty is not None else stereo
         self._flow: FlowEstimator | None = None
         self._estimator: MotionEstimator | None = None
         if self.method is Method.FLOW:
@@ -193,7 +187,7 @@ class VisualOdometry:
             self._estimator = keyframe_estimator(self.method, self.geo, self.polisher, o, self.path_counts, self.rng)
         rig = self.geo.rig
         self.offset = (
-            DisparityOffset(rig.fx, rig.fy, rig.cx, rig.cy, rig.baseline_m, track_sigma_px=o.track_sigma_px)
+            DisparityOffset(rig.fx, rig.fy, rig.cx, rig.cy, rig.baseline_m, o.track_sigma_px)
             if stereo and rig is not None and o.stereo_offset
             else None
         )
@@ -275,6 +269,9 @@ class VisualOdometry:
         remeasure: bool = True,
     ) -> None:
         self.front.make_keyframe(gray, right_gray, depth_m, self.pose.T_world_cam, X_cur, remeasure)
+        if self.offset is not None and self.offset.waiting:
+            # The first keyframe (or one after a gap): its own disparities start the next pair.
+            self._observe_offset(self.front.kf_ids, self.front.kf_X, None)
         self.T_prev_kf = np.eye(4)
         self.kf_since = 0
         if self.store is not None:
@@ -298,18 +295,18 @@ class VisualOdometry:
         self.kf_since = 0
         return True
 
-    def _observe_offset(self, meas: Meas | None, idx: npt.NDArray[np.intp], T_cur_prev: F64) -> None:
-        """Stereo: feed this frame's measured disparities to the disparity-offset estimate."""
+    def _observe_offset(self, ids: npt.NDArray[np.int64], X: F64, T_cur_prev: F64 | None) -> None:
+        """Stereo: feed measured points (their ids, 3D in this camera from this frame's disparities)
+        to the disparity-offset estimate; ``T_cur_prev``: the motion since its last observation."""
         assert self.offset is not None
-        if meas is None or not len(meas[0]):
+        if not len(ids):
             self.offset.forget()
             return
         g = self.geo
-        X = meas[1]
         z = X[:, 2]
         und = np.c_[X[:, 0] / z * g.intr.fx + g.intr.cx, X[:, 1] / z * g.intr.fy + g.intr.cy]
         d_raw = self.offset.fb / z - g.disparity_offset_px
-        self.offset.observe(self.front.kf_ids[idx[meas[0]]], und, d_raw, T_cur_prev)
+        self.offset.observe(ids, und, d_raw, T_cur_prev)
         g.disparity_offset_px = self.offset.offset_px
 
     def _process_keyframe(
@@ -363,7 +360,7 @@ class VisualOdometry:
                 gray,
                 right_gray,
                 depth_m,
-                disparity_variance(front.kf_w[idx], front.kf_X[idx, 2]) if self._point_uncertainty else None,
+                disparity_variance(front.kf_w[idx], front.kf_X[idx, 2]) if o.point_uncertainty else None,
             )
             m = self._estimator.estimate(tracks)
             if m.ok:
@@ -406,7 +403,10 @@ class VisualOdometry:
             front.fuse(idx[meas[0]], meas[1], T_cur_kf)
             fused = True
         if self.offset is not None:
-            self._observe_offset(meas if motion is not None and not fallback else None, idx, T_cur_prev)
+            if meas is not None and motion is not None and not fallback:
+                self._observe_offset(front.kf_ids[idx[meas[0]]], meas[1], T_cur_prev)
+            else:
+                self.offset.forget()
 
         # Keep the inlier tracks (all valid tracks when the estimate was not from them).
         if motion is not None and not fallback:

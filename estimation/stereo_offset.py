@@ -9,8 +9,10 @@ image motion is proportional to inverse depth ``(d + b) / (f B)``, so across nea
 its intercept in ``d`` gives ``b``. Each pair of frames (rotation held at the estimate, which the
 far points pin down) is one linear fit of the translation ``t`` and ``c = b t``; the pairs' moments
 of ``b``, corrected for the noise of ``t`` and ``c``, are summed with a zero-mean prior
-(``prior_sigma_px``), so noisy pairs add no bias and a camera that does not translate keeps
-``b = 0`` (docs/estimation-log.md, fifth pass).
+(``prior_sigma_px``). Pairs whose translation cannot show the offset (a camera at rest) and
+ill-conditioned fits (a planar scene; a fit claiming more than the clip alone, which truncates
+one tail: an offset near the clip would read low) are skipped (docs/estimation-log.md, fifth
+and eleventh passes).
 """
 
 from __future__ import annotations
@@ -33,10 +35,10 @@ class DisparityOffset:
     Args:
         fx, fy, cx, cy: the rectified camera, px.
         baseline_m: the stereo baseline, m.
-        prior_sigma_px: standard deviation of the zero-mean prior on the offset, px.
-        max_offset_px: the estimate is clipped to +-this, px.
         track_sigma_px: the tracks' noise, px: a pair whose translation changes its tracks' image
             motion by less than this per pixel of offset (over all its tracks) is skipped.
+        prior_sigma_px: standard deviation of the zero-mean prior on the offset, px.
+        max_offset_px: the estimate is clipped to +-this, px; a pair fit that alone claims more is skipped.
     """
 
     def __init__(
@@ -46,9 +48,9 @@ class DisparityOffset:
         cx: float,
         cy: float,
         baseline_m: float,
+        track_sigma_px: float,
         prior_sigma_px: float = 0.5,
         max_offset_px: float = 1.0,
-        track_sigma_px: float = 0.5,
     ) -> None:
         self.fx, self.fy, self.cx, self.cy, self.fb = fx, fy, cx, cy, fx * baseline_m
         self.max_offset_px = max_offset_px
@@ -64,6 +66,11 @@ class DisparityOffset:
         """The current estimate, px."""
         b = self._num / (max(self._den, 0.0) + self._prior_info)
         return float(np.clip(b, -self.max_offset_px, self.max_offset_px))
+
+    @property
+    def waiting(self) -> bool:
+        """No observation waits for its pair (the start, or after :meth:`forget`)."""
+        return self._prev is None
 
     def forget(self) -> None:
         """The next observation starts a new pair (after a frame without measurements)."""

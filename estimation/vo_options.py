@@ -233,21 +233,19 @@ class VoOptions:
             depth image is in range (0: start at once).
         max_depth_baselines: stereo points farther than this many baselines are not used (inf: all kept).
         min_disparity_px: stereo points with a smaller disparity are not used, px (the matching noise floor).
-        far_points: stereo points beyond the depth cap or minimum disparity: ``"drop"`` them, keep them
-            for the ``"rotation"`` only, or keep them with a say in the translation ``"weighted"`` by cap / depth
-            (None: ``"weighted"`` for ``stereo``, ``"drop"`` for ``flow``'s stereo depth).
+        far_points: stereo points beyond the depth cap: ``"drop"``, for the ``"rotation"`` only, or ``"weighted"``
+            in the translation by cap / depth (None: ``"weighted"`` for ``stereo``, ``"drop"`` for ``flow``).
         refine_with_depth: polish poses on the current frame's depth too (``pnp.refine_pose``).
         depth_sigma_per_m2: depth images' noise: sigma_z = this x z^2 (Kinect v1: 1.425e-3 /m,
             Khoshelham & Elberink 2012); weighs registered depth in the polish (0: the fixed 0.1 m weight).
-        track_sigma_px: the tracks' pixel noise the depth residuals are weighed against, px.
+        track_sigma_px: the tracks' pixel noise, px: the depth residuals' weight, the offset's skip of pairs.
         polish_huber_px: the pose polish's Huber width, px (not converted per camera: see the log).
         point_uncertainty: the pose polish weighs each keyframe point by its own depth's noise
-            (one disparity measurement as noisy as a track, less after fusion; ``pnp.refine_pose``;
-            None: on for ``stereo``, off for the RGB-D methods).
+            (``pnp.refine_pose``; None: on for ``stereo``, off for the RGB-D methods).
         fuse_depth: fuse each frame's depth of tracked points into their 3D estimates.
         stereo_fb_check: also check left-right stereo matches right-to-left.
         stereo_offset: ``stereo``: estimate the pair's disparity offset online (``estimation.stereo_offset``;
-            None: on).
+            None: on for ``stereo``).
         orb_fallback: match ORB against the keyframe when tracking fails (``FALLBACK``).
         keyframes: the keyframe policy (:class:`~estimation.keyframes.KeyframePolicy`).
         ba_window: local bundle adjustment over this many keyframes (0: off).
@@ -321,6 +319,22 @@ class VoOptions:
             track_sigma_px=self.track_sigma_px * n,
             project_margin_px=self.project_margin_px * n,
             min_disparity_px=self.min_disparity_px * n,
+        )
+
+    def for_method(self, method: Method) -> VoOptions:
+        """These options with ``method``'s estimator options and its defaults for the options left
+        None (``stereo``: far points weighted, offset on, point uncertainty on; others: off).
+
+        Raises:
+            EstimationError: ``estimator`` belongs to another method.
+        """
+        stereo = method is Method.STEREO
+        return replace(
+            self,
+            estimator=self.estimator_options(method),
+            far_points=self.far_points or ("weighted" if stereo else "drop"),
+            stereo_offset=stereo if self.stereo_offset is None else self.stereo_offset,
+            point_uncertainty=stereo if self.point_uncertainty is None else self.point_uncertainty,
         )
 
     def estimator_options(self, method: Method) -> EstimatorOptions:

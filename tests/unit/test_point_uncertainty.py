@@ -82,3 +82,6 @@ def test_point_variances_must_match_the_points() -> None:
         refine_pose(T0, X_kf, uv, INTR.K, d_cur, FB_PX_M, point_var=var[:5])
     with pytest.raises(EstimationError, match="positive fx"):
         refine_pose(T0, X_kf, uv, INTR.K, point_var=var)
+    for bad in (-1.0, np.nan):
+        with pytest.raises(EstimationError, match="each >= 0"):
+            refine_pose(T0, X_kf, uv, INTR.K, d_cur, FB_PX_M, point_var=np.where(np.arange(len(var)) == 3, bad, var))

@@ -22,7 +22,7 @@ def _observe_drive(offset_px: float, step_m: float, frames: int = 6, drift_px: f
     n = 300
     z = rng.uniform(4.0, 60.0, n)
     X = np.c_[rng.uniform(-0.8, 0.8, n) * z, rng.uniform(-0.2, 0.2, n) * z, z + frames * step_m]
-    est = DisparityOffset(FX, FX, CX, CY, B)
+    est = DisparityOffset(FX, FX, CX, CY, B, 0.5)
     T_step = make_T(Rotation.from_euler("y", 0.3, degrees=True).as_matrix(), np.array([0.0, 0.0, -step_m]))
     ids = np.arange(n, dtype=np.int64)
     for k in range(frames):
@@ -51,6 +51,9 @@ def test_at_rest_a_common_image_motion_is_not_taken_for_an_offset() -> None:
     est = _observe_drive(0.3, 0.0, frames=12, drift_px=0.05)
     assert est.pairs == 0
     assert est.offset_px == 0.0
+    # Creeping 1 cm a frame (|t| / B sqrt(n) = 0.35 < 0.5 px): still nothing to see the offset by.
+    creep = _observe_drive(0.3, 0.01, frames=12, drift_px=0.05)
+    assert creep.pairs == 0 and creep.offset_px == 0.0
     moving = _observe_drive(0.3, 1.2, frames=6, drift_px=0.05)
     assert moving.pairs == 5 and abs(moving.offset_px - 0.3) < 0.05
 
@@ -62,7 +65,7 @@ def test_on_a_render_with_little_image_motion_the_offset_stays_at_zero() -> None
     seq = synthetic_sequence("rectangle", size=(320, 240), color=False)
     i = seq.intrinsics
     assert seq.baseline_m is not None
-    est = DisparityOffset(i.fx, i.fy, i.cx, i.cy, seq.baseline_m)
+    est = DisparityOffset(i.fx, i.fy, i.cx, i.cy, seq.baseline_m, 0.5)
     flows = []
     for k in range(0, 24, 3):
         f0, f1 = seq.frame(k), seq.frame(k + 1)
@@ -92,7 +95,7 @@ def test_a_planar_scene_says_nothing_of_the_offset() -> None:
     rng = np.random.default_rng(5)
     n = 300
     X = np.c_[rng.uniform(-4.0, 4.0, n), rng.uniform(-1.5, 1.5, n), np.full(n, 6.0)]
-    est = DisparityOffset(FX, FX, CX, CY, B)
+    est = DisparityOffset(FX, FX, CX, CY, B, 0.5)
     T_step = make_T(np.eye(3), np.array([-0.2, 0.0, 0.0]))
     ids = np.arange(n, dtype=np.int64)
     for k in range(8):
@@ -100,4 +103,17 @@ def test_a_planar_scene_says_nothing_of_the_offset() -> None:
         d = FX * B / X[:, 2] + rng.normal(0, 0.1, n)
         est.observe(ids, uv, d, T_step if k else None)
         X = X @ T_step[:3, :3].T + T_step[:3, 3]
-    assert abs(est.offset_px) < 0.05
+    assert est.pairs == 0 and est.offset_px == 0.0
+
+
+def test_a_keyframe_observation_starts_the_first_pair() -> None:
+    # VisualOdometry observes a new keyframe's own disparities when no observation waits for its
+    # pair (the start, or after a gap), so the first tracked frame already gives a pair.
+    est = DisparityOffset(FX, FX, CX, CY, B, 0.5)
+    assert est.waiting
+    ids = np.arange(30, dtype=np.int64)
+    uv = np.c_[np.linspace(100.0, 1100.0, 30), np.full(30, 180.0)]
+    est.observe(ids, uv, np.full(30, 20.0), None)
+    assert not est.waiting and est.pairs == 0
+    est.forget()
+    assert est.waiting
