@@ -151,7 +151,6 @@ class VisualOdometry:
             names = ", ".join(m.value for m in Method)
             raise EstimationError(f"unknown VO method {method!r}; use one of {names}") from exc
         given = options or VoOptions()
-        # Pixel options are given at REF_FOCAL_PX: this camera's pixels from here on.
         # The method's defaults for options left None; pixel options are given at REF_FOCAL_PX:
         # this camera's pixels from here on.
         self.opts = o = given.for_method(self.method).for_camera(
