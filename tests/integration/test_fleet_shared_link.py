@@ -15,7 +15,7 @@ import pytest
 
 from flightkit.apps.sim_session import sim_fleet_session
 from flightkit.clock import ONE_PROCESS_WALL_STEP_S, SimClock
-from flightkit.config import Autopilot, LabConfig, LinkConfig, load_config
+from flightkit.config import Autopilot, LabConfig, LinkConfig, MocapConfig, load_config
 from flightkit.errors import ConfigError, LinkError, LinkTimeout
 from flightkit.link.mavlink import MavlinkLink
 from flightkit.sim.fleet import SimFleet, fleet_lab_config
@@ -24,7 +24,8 @@ from trajectories.circle import Circle
 from trajectories.plan import PlanSettings
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
-SPEED = 3.0  # three vehicles' loops, autopilots, the router and one mocap system in one process
+SPEED = 2.0  # three vehicles' loops, autopilots, the router and one mocap system in one process on 2 cores:
+# at 3x a slow CI machine starved the loops (101 mm RMS on the circle where 67 mm is usual)
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(120)]
 
@@ -57,7 +58,8 @@ def test_a_fleet_of_three_flies_through_one_shared_port() -> None:
             await fleet.takeoff(1.0)
             skew_s = await fleet.fly(circles)
             await fleet.land()
-        assert 0.0 <= skew_s < 0.1, skew_s
+        # one common epoch; a vehicle whose first cycles hold on stale mocap joins it up to the stale limit late
+        assert 0.0 <= skew_s < MocapConfig().stale_after_s + 2.0 / 50.0, skew_s
         for n, summary in fleet.summaries().items():
             assert summary.laps_completed == 1, (n, summary.format_table())
             assert summary.phase("pattern").rms_error_m < 0.1, (n, summary.format_table())
