@@ -217,7 +217,7 @@ class VoOptions:
         fast_threshold: FAST threshold (grey levels).
         border_px: corners nearer the image border are not detected, px (not converted per camera: see the log).
         project_margin_px: tracks predicted up to this far outside the image still start LK there, px.
-        klt_win_px, klt_levels: LK window, px (0: 11, at least 9 after scaling); levels (None: 3).
+        klt_win_px, klt_levels: LK window, px (0: 11; never grows with the focal length, at least 9); levels (None: 3).
         klt_back_levels: pyramid levels of the backward (checking) LK pass (at most ``klt_levels``).
         klt_iters: LK iterations per pyramid level at most.
         stereo_win_px: LK window of the left-right disparity search, px (0: the tracking window).
@@ -297,11 +297,11 @@ class VoOptions:
         """These options in the pixels of a camera with focal length ``focal_px`` and images
         ``width_px`` wide: image motions times ``focal_px / REF_FOCAL_PX``; tolerances on measured
         pixels (thresholds, gates, minimum disparity, the projection's margin) times that ratio
-        when it is above 1; LK
-        windows times the ratio, odd and at least 9 px; the keyframe parallax times
-        ``width_px / REF_WIDTH_PX``."""
+        when it is above 1; LK windows times that ratio when it is below 1 (odd, at least 9 px);
+        the keyframe parallax times ``width_px / REF_WIDTH_PX``."""
         s = focal_px / REF_FOCAL_PX
         n = max(1.0, s)
+        w = min(1.0, s)
         est = self.estimator
         if est is not None:
             est = _scale_px(_scale_px(est, n, _NOISE_PX[type(est)]), s, _GEOMETRIC_PX[type(est)])
@@ -311,8 +311,8 @@ class VoOptions:
             estimator=est,
             keyframes=replace(kf, max_parallax_px=kf.max_parallax_px * width_px / REF_WIDTH_PX),
             cell_px=round(self.cell_px * s),
-            klt_win_px=_odd_window((self.klt_win_px or 11) * s, 9),
-            stereo_win_px=_odd_window(self.stereo_win_px * s, 9) if self.stereo_win_px else 0,
+            klt_win_px=_odd_window((self.klt_win_px or 11) * w, 9),
+            stereo_win_px=_odd_window(self.stereo_win_px * w, 9) if self.stereo_win_px else 0,
             fb_max_px=self.fb_max_px * n,
             klt_trust_prior_px=self.klt_trust_prior_px * n,
             reproj_px=self.reproj_px * n,

@@ -171,8 +171,9 @@ def _ate_rpe(res: VoResult, gt: Trajectory) -> tuple[float, float]:
 
 def test_kitti06_native_stereo_against_the_plain_stereo_pipeline() -> None:
     """Native 1226x370, bounds as ratios to plain-stereo (SGBM + GFTT + KLT + PnP RANSAC) run
-    here on the same 20 frames. Measured 2026-11-27 (eleventh pass): ATE 0.015 vs 0.049 m (0.30x),
-    RPE 11.6 vs 12.4 mm (0.94x); 39-115 vs 3.6-4.8 frames per CPU second with the machine's load.
+    here on the same 20 frames. Measured 2026-11-27 (twelfth pass, 11 px LK window): ATE 0.025 vs
+    0.049 m (0.52x), RPE 12.6 vs 12.4 mm (1.01x; over all 51 frames 11.0 vs 12.5); 66-120 vs
+    3.6-5.1 frames per CPU second with the machine's load.
     These bounds catch a regression from where the code is."""
     kitti = open_sequence(SHARED_DATA / "kitti06_stereo")
     gt = kitti.groundtruth()

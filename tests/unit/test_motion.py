@@ -386,7 +386,7 @@ def test_vo_options_reject_bad_values() -> None:
         VisualOdometry("stereo", intr, baseline_m=0.1, options=VoOptions(estimator=KabschOptions()))
 
 
-def test_lk_window_and_pyramid_follow_the_focal_length() -> None:
+def test_lk_window_shrinks_with_the_focal_length_and_never_grows() -> None:
     from estimation.pipeline import VisualOdometry, VoOptions
     from flightkit.datasets.base import CameraIntrinsics
 
@@ -397,13 +397,17 @@ def test_lk_window_and_pyramid_follow_the_focal_length() -> None:
     assert (g.klt_win, g.klt_levels, g.klt_back_levels, g.stereo_win) == (9, 3, 1, 9)  # 5.4 px, at least 9
     g = VisualOdometry("stereo", large, baseline_m=0.1).geo
     assert (g.klt_win, g.klt_levels, g.klt_back_levels, g.stereo_win) == (11, 3, 1, 11)
+    # A longer focal length keeps the window: the patch's deformation and the pixel noise, which
+    # set the window, do not depend on it.
     g = VisualOdometry("stereo", wide, baseline_m=0.1).geo
-    assert (g.klt_win, g.stereo_win) == (21, 21)
-    # Windows given at the reference focal length scale too; the backward pass never uses
+    assert (g.klt_win, g.stereo_win) == (11, 11)
+    # Windows given at the reference focal length shrink likewise; the backward pass never uses
     # more levels than the forward one.
     opts = VoOptions(klt_win_px=15, klt_levels=1, klt_back_levels=3, stereo_win_px=21)
     g = VisualOdometry("stereo", wide, baseline_m=0.1, options=opts).geo
-    assert (g.klt_win, g.klt_levels, g.klt_back_levels, g.stereo_win) == (29, 1, 1, 41)
+    assert (g.klt_win, g.klt_levels, g.klt_back_levels, g.stereo_win) == (15, 1, 1, 21)
+    g = VisualOdometry("stereo", small, baseline_m=0.1, options=opts).geo
+    assert (g.klt_win, g.stereo_win) == (9, 11)  # 7.4 px -> at least 9; 10.4 px -> 11
 
 
 def test_pixel_options_follow_the_focal_length() -> None:
