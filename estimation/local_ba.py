@@ -95,7 +95,15 @@ class LocalBundleWindow:
         self.window = [(new_poses[c], *w[1:]) for c, w in enumerate(self.window)]
         T_new: F64 = new_poses[-1].copy()
         T_kf_world = invert(T_new)
-        Xw = np.stack([self.landmarks[int(k)] if int(k) in self.landmarks else np.full(3, np.nan) for k in ids])
+        # Points the adjustment refined come from the landmarks; the others (seen by the newest
+        # keyframe alone) keep their place in its camera frame and move with it in the world.
+        adjusted = set(lids.tolist())
+        Xw = np.stack([self.landmarks[int(k)] if int(k) in adjusted else np.full(3, np.nan) for k in ids])
         Xk = Xw @ T_kf_world[:3, :3].T + T_kf_world[:3, 3]
         good = np.isfinite(Xk).all(axis=1) & (Xk[:, 2] > min_depth_m)
-        return T_new, np.where(good[:, None], Xk, X_kf)
+        Xk = np.where(good[:, None], Xk, X_kf)
+        Xw_new = Xk @ T_new[:3, :3].T + T_new[:3, 3]
+        for i, lid in enumerate(ids.tolist()):
+            if lid not in adjusted:
+                self.landmarks[lid] = Xw_new[i]
+        return T_new, Xk
