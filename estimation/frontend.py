@@ -24,7 +24,7 @@ from estimation.matching import match_descriptors, match_stereo_rows
 from estimation.motion import Motion, invert
 from estimation.pnp import pnp
 from estimation.revisit import StoredKeyframe
-from estimation.stereo import StereoRig, sparse_disparity, triangulate
+from estimation.stereo import StereoRig, row_disparity, sparse_disparity, triangulate
 from estimation.vo_options import VoOptions
 from flightkit.errors import EstimationError
 
@@ -147,21 +147,40 @@ class CameraGeometry:
         if right is None or left is None or self.rig is None:
             raise EstimationError("this VO method needs depth or a stereo pair in every frame")
         keep_far = self.opts.far_points not in (None, "drop")
-        disp, ok = sparse_disparity(
-            left,
-            right,
-            px,
-            init_disp,
-            fb_max_px=self.opts.fb_max_px if self.opts.stereo_fb_check else None,
-            win_px=self.stereo_win,
-            levels=self.klt_levels,
-            min_disparity_px=_FAR_MIN_DISPARITY_PX if keep_far else self.opts.min_disparity_px,
-        )
+        d_min = _FAR_MIN_DISPARITY_PX if keep_far else self.opts.min_disparity_px
+        matcher = self.opts.stereo_matcher
+        if matcher == "lk":
+            disp, ok = self._lk_disparity(left, right, px, init_disp, d_min)
+        else:
+            disp, ok = row_disparity(left, right, px, d_min, self.max_disparity_px(), win_px=self.stereo_win)
+            miss = np.flatnonzero(~ok)
+            if matcher == "row+lk" and len(miss):
+                init = np.broadcast_to(np.asarray(init_disp, dtype=np.float32), (len(px),))
+                disp[miss], ok[miss] = self._lk_disparity(left, right, px[miss], init[miss], d_min)
         zmax = self.max_stereo_depth_m() if max_depth_m is None else max_depth_m
         if keep_far:
             zmax = max(zmax, self.rig.fx * self.rig.baseline_m / _FAR_MIN_DISPARITY_PX)
         X, ok2 = triangulate(px, disp + np.float32(self.disparity_offset_px), self.rig, self.opts.min_depth_m, zmax)
         return X, ok & ok2
+
+    def _lk_disparity(self, left: U8, right: U8, px: F32, init_disp: F32 | float, d_min: float) -> tuple[F32, Bool]:
+        """Disparities by LK from ``init_disp`` into the right image, row-checked (``sparse_disparity``)."""
+        return sparse_disparity(
+            left,
+            right,
+            np.ascontiguousarray(px),
+            init_disp,
+            fb_max_px=self.opts.fb_max_px if self.opts.stereo_fb_check else None,
+            win_px=self.stereo_win,
+            levels=self.klt_levels,
+            min_disparity_px=d_min,
+        )
+
+    def max_disparity_px(self) -> float:
+        """The largest disparity a stereo search looks at, px: that of ``min_depth_m``, at most the
+        image width."""
+        assert self.rig is not None
+        return min(self.rig.fx * self.rig.baseline_m / self.opts.min_depth_m, float(self.intr.width))
 
     def max_stereo_depth_m(self) -> float:
         """The farthest stereo depth used, m."""
