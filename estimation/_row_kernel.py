@@ -163,6 +163,12 @@ def row_match(
     ok = np.zeros(n_pts, np.bool_)
     lp = np.empty((n, n), np.float64)
     lraw = np.empty((n, n), np.float64)
+    # Buffers of the widest search (a strip as wide as the image).
+    strip = np.empty((n, w + n), np.float32)
+    cs = np.empty(w + n, np.float32)
+    cs2 = np.empty(w + n, np.float32)
+    num = np.empty(w + n, np.float32)
+    sc = np.empty(w + n, np.float32)
     for p in range(n_pts):
         u = float(pts[p, 0])
         v = float(pts[p, 1])
@@ -201,52 +207,52 @@ def row_match(
         # the point's fractional offsets. Column c is right x = x0 + c + fu.
         x0 = ui - k_hi - half
         ncol = (k_hi - k_lo) + n
-        strip = np.empty((n, ncol), np.float32)
         w00 = (1.0 - fu) * (1.0 - fv)
         w01 = fu * (1.0 - fv)
         w10 = (1.0 - fu) * fv
         w11 = fu * fv
+        cs[:ncol] = 0.0
+        cs2[:ncol] = 0.0
+        csv = cs[:ncol]
+        cs2v = cs2[:ncol]
         for i in range(n):
             y = vi - half + i
+            srow = strip[i, :ncol]
+            r0 = right[y, x0 : x0 + ncol + 1]
             if fu == 0.0 and fv == 0.0:  # a whole pixel (new corners): a copy
                 for c in range(ncol):
-                    strip[i, c] = right[y, x0 + c]
-                continue
+                    srow[c] = r0[c]
+            else:
+                r1 = right[y + 1, x0 : x0 + ncol + 1]
+                for c in range(ncol):
+                    srow[c] = w00 * r0[c] + w01 * r0[c + 1] + w10 * r1[c] + w11 * r1[c + 1]
             for c in range(ncol):
-                x = x0 + c
-                strip[i, c] = (
-                    w00 * right[y, x] + w01 * right[y, x + 1] + w10 * right[y + 1, x] + w11 * right[y + 1, x + 1]
-                )
-        # Column sums for the patches' means and norms.
-        cs = np.zeros(ncol, np.float64)
-        cs2 = np.zeros(ncol, np.float64)
-        for i in range(n):
-            for c in range(ncol):
-                val = float(strip[i, c])
-                cs[c] += val
-                cs2[c] += val * val
+                val = srow[c]
+                csv[c] += val
+                cs2v[c] += val * val
         ncand = k_hi - k_lo + 1
         # Candidate q is disparity k_hi - q: its patch starts at strip column q. The correlation
         # of every candidate at once, one patch pixel at a time (a contiguous, vectorised loop).
-        num = np.zeros(ncand, np.float32)
+        num[:ncand] = 0.0
         for i in range(n):
             for j in range(n):
-                c = np.float32(lp[i, j])
-                row = strip[i, j : j + ncand]
+                c32 = np.float32(lp[i, j])
+                srow = strip[i, j : j + ncand]
+                nrow = num[:ncand]
                 for q in range(ncand):
-                    num[q] += c * row[q]
-        sc = np.empty(ncand, np.float64)
+                    nrow[q] += c32 * srow[q]
         s1 = 0.0
         s2 = 0.0
-        for j in range(n):
+        for j in range(n - 1):
             s1 += cs[j]
             s2 += cs2[j]
         for q in range(ncand):
-            if q > 0:
-                s1 += cs[q + n - 1] - cs[q - 1]
-                s2 += cs2[q + n - 1] - cs2[q - 1]
+            s1 += cs[q + n - 1]
+            s2 += cs2[q + n - 1]
             var = s2 - s1 * s1 / npix
             sc[q] = num[q] / math.sqrt(var) if var > 1e-6 * npix else -1.0
+            s1 -= cs[q]
+            s2 -= cs2[q]
         # The best peak and the second-best other peak (local maxima).
         qb = 0
         for q in range(1, ncand):
