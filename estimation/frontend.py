@@ -151,12 +151,19 @@ class CameraGeometry:
         matcher = self.opts.stereo_matcher
         if matcher == "lk":
             disp, ok = self._lk_disparity(left, right, px, init_disp, d_min)
-        else:
+        elif matcher == "row":
             disp, ok = row_disparity(left, right, px, d_min, self.max_disparity_px(), win_px=self.stereo_win)
-            miss = np.flatnonzero(~ok)
-            if matcher == "row+lk" and len(miss):
-                init = np.broadcast_to(np.asarray(init_disp, dtype=np.float32), (len(px),))
-                disp[miss], ok[miss] = self._lk_disparity(left, right, px[miss], init[miss], d_min)
+        else:
+            # The row search finds the match (parabola only); LK measures it from there, as the pose
+            # polish measures every frame's disparity, and from the guess where the search found none.
+            d_row, ok_row = row_disparity(
+                left, right, px, d_min, self.max_disparity_px(), win_px=self.stereo_win, refine_iters=0
+            )
+            guess = np.where(ok_row, d_row, np.asarray(init_disp, dtype=np.float32)).astype(np.float32)
+            disp, ok = self._lk_disparity(left, right, px, guess, d_min)
+            keep_row = ok_row & ~(ok & (np.abs(disp - d_row) < 1.0))
+            disp[keep_row] = d_row[keep_row]
+            ok |= ok_row
         zmax = self.max_stereo_depth_m() if max_depth_m is None else max_depth_m
         if keep_far:
             zmax = max(zmax, self.rig.fx * self.rig.baseline_m / _FAR_MIN_DISPARITY_PX)
