@@ -152,13 +152,11 @@ class CameraGeometry:
         if matcher == "lk":
             disp, ok = self._lk_disparity(left, right, px, init_disp, d_min)
         elif matcher == "row":
-            disp, ok = row_disparity(left, right, px, d_min, self.max_disparity_px(), win_px=self.stereo_win)
+            disp, ok = self._row_disparity(left, right, px, d_min)
         else:
             # The row search finds the match (parabola only); LK measures it from there, as the pose
             # polish measures every frame's disparity, and from the guess where the search found none.
-            d_row, ok_row = row_disparity(
-                left, right, px, d_min, self.max_disparity_px(), win_px=self.stereo_win, refine_iters=0
-            )
+            d_row, ok_row = self._row_disparity(left, right, px, d_min, refine_iters=0)
             guess = np.where(ok_row, d_row, np.asarray(init_disp, dtype=np.float32)).astype(np.float32)
             disp, ok = self._lk_disparity(left, right, px, guess, d_min)
             keep_row = ok_row & ~(ok & (np.abs(disp - d_row) < 1.0))
@@ -169,6 +167,21 @@ class CameraGeometry:
             zmax = max(zmax, self.rig.fx * self.rig.baseline_m / _FAR_MIN_DISPARITY_PX)
         X, ok2 = triangulate(px, disp + np.float32(self.disparity_offset_px), self.rig, self.opts.min_depth_m, zmax)
         return X, ok & ok2
+
+    def _row_disparity(self, left: U8, right: U8, px: F32, d_min: float, refine_iters: int = 3) -> tuple[F32, Bool]:
+        """Disparities by the row search (``row_disparity``) from just below zero to the rig's largest,
+        kept from ``d_min``: a match just below ``d_min`` is not replaced by a false one in range."""
+        disp, ok = row_disparity(
+            left,
+            right,
+            px,
+            -_ROW_SEARCH_BELOW_PX,
+            self.max_disparity_px(),
+            win_px=self.stereo_win,
+            refine_iters=refine_iters,
+        )
+        ok &= disp >= d_min
+        return disp, ok
 
     def _lk_disparity(self, left: U8, right: U8, px: F32, init_disp: F32 | float, d_min: float) -> tuple[F32, Bool]:
         """Disparities by LK from ``init_disp`` into the right image, row-checked (``sparse_disparity``)."""
@@ -272,6 +285,9 @@ def depth_weight_baseline_m(fx_px: float, registered: bool, options: VoOptions) 
 
 _FAR_MIN_DISPARITY_PX = 0.5
 """With far points kept: the smallest disparity accepted, px."""
+
+_ROW_SEARCH_BELOW_PX = 2.0
+"""The row search starts this far below zero disparity, px (a peak at the range's end is refused)."""
 
 
 def depth_weight(z: F64) -> F64:
