@@ -154,14 +154,16 @@ class CameraGeometry:
         elif matcher == "row":
             disp, ok = self._row_disparity(left, right, px, d_min)
         else:
-            # The row search finds the match (parabola only); LK measures it from there, as the pose
-            # polish measures every frame's disparity, and from the guess where the search found none.
+            # LK from the guess as before; where the row search found a match that LK missed or
+            # contradicts, LK measures it again from that match (one level), as the polish would.
+            disp, ok = self._lk_disparity(left, right, px, init_disp, d_min)
             d_row, ok_row = self._row_disparity(left, right, px, d_min, refine_iters=0)
-            guess = np.where(ok_row, d_row, np.asarray(init_disp, dtype=np.float32)).astype(np.float32)
-            disp, ok = self._lk_disparity(left, right, px, guess, d_min)
-            keep_row = ok_row & ~(ok & (np.abs(disp - d_row) < 1.0))
-            disp[keep_row] = d_row[keep_row]
-            ok |= ok_row
+            redo = np.flatnonzero(ok_row & ~(ok & (np.abs(disp - d_row) < 1.0)))
+            if len(redo):
+                d_lk, ok_lk = self._lk_disparity(left, right, px[redo], d_row[redo], d_min, levels=1)
+                agree = ok_lk & (np.abs(d_lk - d_row[redo]) < 1.0)
+                disp[redo] = np.where(agree, d_lk, d_row[redo])
+                ok[redo] = True
         zmax = self.max_stereo_depth_m() if max_depth_m is None else max_depth_m
         if keep_far:
             zmax = max(zmax, self.rig.fx * self.rig.baseline_m / _FAR_MIN_DISPARITY_PX)
@@ -183,8 +185,11 @@ class CameraGeometry:
         ok &= disp >= d_min
         return disp, ok
 
-    def _lk_disparity(self, left: U8, right: U8, px: F32, init_disp: F32 | float, d_min: float) -> tuple[F32, Bool]:
-        """Disparities by LK from ``init_disp`` into the right image, row-checked (``sparse_disparity``)."""
+    def _lk_disparity(
+        self, left: U8, right: U8, px: F32, init_disp: F32 | float, d_min: float, levels: int | None = None
+    ) -> tuple[F32, Bool]:
+        """Disparities by LK from ``init_disp`` into the right image, row-checked (``sparse_disparity``;
+        ``levels``: pyramid levels, None: the tracking's)."""
         return sparse_disparity(
             left,
             right,
@@ -192,7 +197,7 @@ class CameraGeometry:
             init_disp,
             fb_max_px=self.opts.fb_max_px if self.opts.stereo_fb_check else None,
             win_px=self.stereo_win,
-            levels=self.klt_levels,
+            levels=self.klt_levels if levels is None else levels,
             min_disparity_px=d_min,
         )
 

@@ -109,7 +109,8 @@ def row_disparity(
     Args:
         left, right: rectified 8-bit images of one size.
         pts_left: (N, 2) float32 left pixels.
-        min_disparity_px, max_disparity_px: the range searched, (N,) or scalar, px.
+        min_disparity_px, max_disparity_px: the range searched, (N,) or scalar, px; a best peak at
+            either end is refused (the match may lie beyond it).
         win_px: the patch's side, px (odd).
         min_score: the best zero-mean normalised cross-correlation must reach this.
         max_cost_ratio: the best match's ``1 - score`` must be at most this share of the next

@@ -223,7 +223,8 @@ class VoOptions:
         stereo_win_px: window of the left-right disparity search, px (0: the tracking window).
         stereo_matcher: a new point's disparity: ``"row"`` (a ZNCC search along the row over the rig's
             range, ``estimation.stereo.row_disparity``), ``"lk"`` (pyramidal LK from a guess, then a row
-            check) or ``"row+lk"`` (LK started at the row search's match, or at the guess where it found none).
+            check) or ``"row+lk"`` (LK, measured again from the row search's match where LK missed or
+            contradicts it).
         fb_max_px: forward-backward tolerance of tracks, px.
         klt_trust_prior_px: RGB-D: tracks within this of their prediction skip the backward check.
         pnp_method: ``"iterative"``, ``"epnp"`` or ``"sqpnp"``: PnP's fit on all inliers.
