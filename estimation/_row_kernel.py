@@ -18,6 +18,8 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
+from estimation._kernels import _solve6
+
 __all__ = ["row_match"]
 
 _COST_FLOOR = 0.02
@@ -38,27 +40,6 @@ def _bilinear(img: Any, x: float, y: float) -> float:
 
 
 @njit(cache=True)
-def _solve(M: Any, g: Any, k: int) -> bool:
-    """Solve the symmetric positive system ``M[:k, :k] x = g[:k]`` in place (``g`` becomes ``x``) by
-    Gaussian elimination; False if it is singular."""
-    for c in range(k):
-        piv = M[c, c]
-        if not piv > 1e-9:
-            return False
-        for r in range(c + 1, k):
-            f = M[r, c] / piv
-            for cc in range(c, k):
-                M[r, cc] -= f * M[c, cc]
-            g[r] -= f * g[c]
-    for c in range(k - 1, -1, -1):
-        acc = g[c]
-        for cc in range(c + 1, k):
-            acc -= M[c, cc] * g[cc]
-        g[c] = acc / M[c, c]
-    return True
-
-
-@njit(cache=True)
 def _refine(left_patch: Any, right: Any, u: float, v: float, half: int, d0: float, iters: int, free_y: bool) -> float:
     """Gauss-Newton on ``d`` (with a gain ``a``, a bias ``b`` and, if ``free_y``, a row offset ``e``) of
     ``sum (a R(u - d + j, v + e + i) + b - L)^2`` from ``d0``; NaN if it leaves the image, moves
@@ -69,9 +50,9 @@ def _refine(left_patch: Any, right: Any, u: float, v: float, half: int, d0: floa
     e = 0.0
     a = 1.0
     b = 0.0
-    M = np.empty((4, 4))
-    g = np.empty(4)
     k = 4 if free_y else 3
+    M = np.empty((k, k))
+    g = np.empty(k)
     # Unknowns (delta d, delta a, delta b, delta e); the first pass fits a and b alone at d0.
     for it in range(iters + 1):
         if u - d - half - 1.0 < 0.0 or u - d + half + 1.0 > w - 2.0:
@@ -93,11 +74,11 @@ def _refine(left_patch: Any, right: Any, u: float, v: float, half: int, d0: floa
                     if free_y:
                         jac3 = 0.5 * a * (_bilinear(right, x, y + 1.0) - _bilinear(right, x, y - 1.0))
                 jac = (jac0, r, 1.0, jac3)
-                for p in range(4):
+                for p in range(k):
                     g[p] -= jac[p] * res
-                    for q in range(p, 4):
+                    for q in range(p, k):
                         M[p, q] += jac[p] * jac[q]
-        for p in range(4):
+        for p in range(k):
             for q in range(p):
                 M[p, q] = M[q, p]
         if it == 0:
@@ -109,7 +90,7 @@ def _refine(left_patch: Any, right: Any, u: float, v: float, half: int, d0: floa
             a += (g[1] * M[2, 2] - M[1, 2] * g[2]) / det2
             b += (M[1, 1] * g[2] - M[1, 2] * g[1]) / det2
             continue
-        if not _solve(M, g, k):
+        if not _solve6(M, g):
             return np.nan
         if abs(g[0]) > 1.0:
             return np.nan
