@@ -75,7 +75,16 @@ from flightkit.datasets.registry import open_sequence  # noqa: E402
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 RGBD = ["rgbd-pnp", "rgbd-essential", "rgbd-kabsch", "rgbd-kabsch@weigh", "rgbd-kabsch@revisit", "flow"]
-STEREO = ["stereo", "stereo@exact", "stereo@ransac", "stereo@drop", "stereo@far", "stereo@offset"]
+STEREO = [
+    "stereo",
+    "stereo@lk",
+    "stereo@row",
+    "stereo@exact",
+    "stereo@ransac",
+    "stereo@drop",
+    "stereo@far",
+    "stereo@offset",
+]
 SEQUENCES: dict[str, tuple[str, list[str], str]] = {
     # key: (folder, flightkit methods, plain baseline)
     "kitti06": ("kitti06_stereo", STEREO + ["flow"], "plain-stereo"),
@@ -97,6 +106,8 @@ VARIANTS: dict[str, VoOptions] = {
     "weigh": VoOptions(point_uncertainty=True),  # RGB-D: the polish weighs each point by its keyframe depth's noise
     "exact": VoOptions(point_uncertainty=False),  # stereo: the polish takes the keyframe points as exact
     "ransac": VoOptions(estimator=PnpOptions(prior_gate_px=0.0)),  # stereo before the speed pass: RANSAC every step
+    "lk": VoOptions(stereo_matcher="lk"),  # stereo: new points' disparity by LK alone (before the twelfth pass)
+    "row": VoOptions(stereo_matcher="row"),  # stereo: new points' disparity by the row search alone
 }
 """Row-name suffixes (``method@variant``) and their options."""
 

@@ -24,7 +24,7 @@ from estimation.matching import match_descriptors, match_stereo_rows
 from estimation.motion import Motion, invert
 from estimation.pnp import pnp
 from estimation.revisit import StoredKeyframe
-from estimation.stereo import StereoRig, sparse_disparity, triangulate
+from estimation.stereo import StereoRig, row_disparity, sparse_disparity, triangulate
 from estimation.vo_options import VoOptions
 from flightkit.errors import EstimationError
 
@@ -147,21 +147,65 @@ class CameraGeometry:
         if right is None or left is None or self.rig is None:
             raise EstimationError("this VO method needs depth or a stereo pair in every frame")
         keep_far = self.opts.far_points not in (None, "drop")
-        disp, ok = sparse_disparity(
-            left,
-            right,
-            px,
-            init_disp,
-            fb_max_px=self.opts.fb_max_px if self.opts.stereo_fb_check else None,
-            win_px=self.stereo_win,
-            levels=self.klt_levels,
-            min_disparity_px=_FAR_MIN_DISPARITY_PX if keep_far else self.opts.min_disparity_px,
-        )
+        d_min = _FAR_MIN_DISPARITY_PX if keep_far else self.opts.min_disparity_px
+        matcher = self.opts.stereo_matcher
+        if matcher == "lk":
+            disp, ok = self._lk_disparity(left, right, px, init_disp, d_min)
+        elif matcher == "row":
+            disp, ok = self._row_disparity(left, right, px, d_min)
+        else:
+            # LK from the guess as before; where the row search found a match that LK missed or
+            # contradicts, LK measures it again from that match (one level), as the polish would.
+            disp, ok = self._lk_disparity(left, right, px, init_disp, d_min)
+            d_row, ok_row = self._row_disparity(left, right, px, d_min, refine_iters=0)
+            redo = np.flatnonzero(ok_row & ~(ok & (np.abs(disp - d_row) < 1.0)))
+            if len(redo):
+                d_lk, ok_lk = self._lk_disparity(left, right, px[redo], d_row[redo], d_min, levels=1)
+                agree = ok_lk & (np.abs(d_lk - d_row[redo]) < 1.0)
+                disp[redo] = np.where(agree, d_lk, d_row[redo])
+                ok[redo] = True
         zmax = self.max_stereo_depth_m() if max_depth_m is None else max_depth_m
         if keep_far:
             zmax = max(zmax, self.rig.fx * self.rig.baseline_m / _FAR_MIN_DISPARITY_PX)
         X, ok2 = triangulate(px, disp + np.float32(self.disparity_offset_px), self.rig, self.opts.min_depth_m, zmax)
         return X, ok & ok2
+
+    def _row_disparity(self, left: U8, right: U8, px: F32, d_min: float, refine_iters: int = 3) -> tuple[F32, Bool]:
+        """Disparities by the row search (``row_disparity``) from just below zero to the rig's largest,
+        kept from ``d_min``: a match just below ``d_min`` is not replaced by a false one in range."""
+        disp, ok = row_disparity(
+            left,
+            right,
+            px,
+            -_ROW_SEARCH_BELOW_PX,
+            self.max_disparity_px(),
+            win_px=self.stereo_win,
+            refine_iters=refine_iters,
+        )
+        ok &= disp >= d_min
+        return disp, ok
+
+    def _lk_disparity(
+        self, left: U8, right: U8, px: F32, init_disp: F32 | float, d_min: float, levels: int | None = None
+    ) -> tuple[F32, Bool]:
+        """Disparities by LK from ``init_disp`` into the right image, row-checked (``sparse_disparity``;
+        ``levels``: pyramid levels, None: the tracking's)."""
+        return sparse_disparity(
+            left,
+            right,
+            np.ascontiguousarray(px),
+            init_disp,
+            fb_max_px=self.opts.fb_max_px if self.opts.stereo_fb_check else None,
+            win_px=self.stereo_win,
+            levels=self.klt_levels if levels is None else levels,
+            min_disparity_px=d_min,
+        )
+
+    def max_disparity_px(self) -> float:
+        """The largest disparity a stereo search looks at, px: that of ``min_depth_m``, at most the
+        image width."""
+        assert self.rig is not None
+        return min(self.rig.fx * self.rig.baseline_m / self.opts.min_depth_m, float(self.intr.width))
 
     def max_stereo_depth_m(self) -> float:
         """The farthest stereo depth used, m."""
@@ -246,6 +290,9 @@ def depth_weight_baseline_m(fx_px: float, registered: bool, options: VoOptions) 
 
 _FAR_MIN_DISPARITY_PX = 0.5
 """With far points kept: the smallest disparity accepted, px."""
+
+_ROW_SEARCH_BELOW_PX = 2.0
+"""The row search starts this far below zero disparity, px (a peak at the range's end is refused)."""
 
 
 def depth_weight(z: F64) -> F64:

@@ -220,7 +220,11 @@ class VoOptions:
         klt_win_px, klt_levels: LK window, px (0: 11; never grows with the focal length, at least 9); levels (None: 3).
         klt_back_levels: pyramid levels of the backward (checking) LK pass (at most ``klt_levels``).
         klt_iters: LK iterations per pyramid level at most.
-        stereo_win_px: LK window of the left-right disparity search, px (0: the tracking window).
+        stereo_win_px: window of the left-right disparity search, px (0: the tracking window).
+        stereo_matcher: a new point's disparity: ``"row"`` (a ZNCC search along the row over the rig's
+            range, ``estimation.stereo.row_disparity``), ``"lk"`` (pyramidal LK from a guess, then a row
+            check) or ``"row+lk"`` (LK, measured again from the row search's match where LK missed or
+            contradicts it).
         fb_max_px: forward-backward tolerance of tracks, px.
         klt_trust_prior_px: RGB-D: tracks within this of their prediction skip the backward check.
         pnp_method: ``"iterative"``, ``"epnp"`` or ``"sqpnp"``: PnP's fit on all inliers.
@@ -265,6 +269,7 @@ class VoOptions:
     klt_back_levels: int = 1
     klt_iters: int = 10
     stereo_win_px: int = 0
+    stereo_matcher: str = "row+lk"
     fb_max_px: float = 1.0
     klt_trust_prior_px: float = 2.0
     pnp_method: str = "iterative"
@@ -356,6 +361,8 @@ class VoOptions:
     def __post_init__(self) -> None:
         if self.pnp_method not in ("iterative", "epnp", "sqpnp"):
             raise EstimationError(f"VoOptions.pnp_method is {self.pnp_method!r}; use iterative, epnp or sqpnp")
+        if self.stereo_matcher not in ("row", "lk", "row+lk"):
+            raise EstimationError(f"VoOptions.stereo_matcher is {self.stereo_matcher!r}; use 'row', 'lk' or 'row+lk'")
         if self.far_points not in (None, "drop", "rotation", "weighted"):
             raise EstimationError(f"VoOptions.far_points is {self.far_points!r}; use 'drop', 'rotation' or 'weighted'")
         if self.pnp_kernel not in (None, "p3p", "ap3p"):
