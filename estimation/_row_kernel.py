@@ -178,7 +178,7 @@ def row_match(
                 c = lraw[i, j] - mean
                 lp[i, j] = c
                 ss += c * c
-        if ss < min_std * min_std * npix:
+        if ss <= 0.0 or ss < min_std * min_std * npix:
             continue
         inv = 1.0 / math.sqrt(ss)
         for i in range(n):

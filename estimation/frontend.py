@@ -155,24 +155,28 @@ class CameraGeometry:
             disp, ok = self._row_disparity(left, right, px, d_min)
         else:
             # LK from the guess as before; where the row search found a match that LK missed or
-            # contradicts, LK measures it again from that match (one level), as the polish would.
+            # contradicts, LK measures it again from that match (one level), as the polish would. A
+            # row match below ``d_min`` also overrules LK: the point is then dropped.
             disp, ok = self._lk_disparity(left, right, px, init_disp, d_min)
-            d_row, ok_row = self._row_disparity(left, right, px, d_min, refine_iters=0)
+            d_row, ok_row = self._row_disparity(left, right, px, None, refine_iters=0)
             redo = np.flatnonzero(ok_row & ~(ok & (np.abs(disp - d_row) < 1.0)))
             if len(redo):
                 d_lk, ok_lk = self._lk_disparity(left, right, px[redo], d_row[redo], d_min, levels=1)
                 agree = ok_lk & (np.abs(d_lk - d_row[redo]) < 1.0)
                 disp[redo] = np.where(agree, d_lk, d_row[redo])
-                ok[redo] = True
+                ok[redo] = disp[redo] >= d_min
         zmax = self.max_stereo_depth_m() if max_depth_m is None else max_depth_m
         if keep_far:
             zmax = max(zmax, self.rig.fx * self.rig.baseline_m / _FAR_MIN_DISPARITY_PX)
         X, ok2 = triangulate(px, disp + np.float32(self.disparity_offset_px), self.rig, self.opts.min_depth_m, zmax)
         return X, ok & ok2
 
-    def _row_disparity(self, left: U8, right: U8, px: F32, d_min: float, refine_iters: int = 3) -> tuple[F32, Bool]:
+    def _row_disparity(
+        self, left: U8, right: U8, px: F32, d_min: float | None, refine_iters: int = 3
+    ) -> tuple[F32, Bool]:
         """Disparities by the row search (``row_disparity``) from just below zero to the rig's largest,
-        kept from ``d_min``: a match just below ``d_min`` is not replaced by a false one in range."""
+        kept from ``d_min`` (None: all): a match just below ``d_min`` is not replaced by a false one in
+        range."""
         disp, ok = row_disparity(
             left,
             right,
@@ -182,7 +186,8 @@ class CameraGeometry:
             win_px=self.stereo_win,
             refine_iters=refine_iters,
         )
-        ok &= disp >= d_min
+        if d_min is not None:
+            ok &= disp >= d_min
         return disp, ok
 
     def _lk_disparity(

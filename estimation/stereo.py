@@ -130,13 +130,16 @@ def row_disparity(
             f"row_disparity got images {left.shape} {left.dtype} and {right.shape} {right.dtype}; "
             "pass two rectified 8-bit grey images of one size"
         )
-    n = len(pts_left)
-    lo = np.broadcast_to(np.asarray(min_disparity_px, dtype=np.float32), (n,))
-    hi = np.broadcast_to(np.asarray(max_disparity_px, dtype=np.float32), (n,))
+    pts = np.ascontiguousarray(pts_left, dtype=np.float32).reshape(-1, 2)
+    n = len(pts)
+    # The range within +-the image width (no match lies beyond it; an infinite bound means no limit).
+    w = float(left.shape[1])
+    lo = np.broadcast_to(np.clip(np.asarray(min_disparity_px, dtype=np.float32), -w, w), (n,))
+    hi = np.broadcast_to(np.clip(np.asarray(max_disparity_px, dtype=np.float32), -w, w), (n,))
     disp, _, ok = row_match(
         np.ascontiguousarray(left),
         np.ascontiguousarray(right),
-        np.ascontiguousarray(pts_left, dtype=np.float32).reshape(-1, 2),
+        pts,
         np.ascontiguousarray(lo),
         np.ascontiguousarray(hi),
         win_px // 2,

@@ -122,3 +122,49 @@ def test_keyframe_stereo_of_each_matcher_on_a_darker_right_camera(
 def test_stereo_matcher_option_is_checked() -> None:
     with pytest.raises(EstimationError, match="stereo_matcher"):
         VoOptions(stereo_matcher="sgbm")
+
+
+def test_row_disparity_takes_unbounded_ranges_flat_patches_and_one_point() -> None:
+    left, right = slanted_pair(1.0, 0.0)
+    pts = corners(left)[:20]
+    d_inf, ok_inf = row_disparity(left, right, pts, 0.0, np.inf)  # no upper limit: the image's width
+    d_wide, ok_wide = row_disparity(left, right, pts, 0.0, float(W))
+    np.testing.assert_array_equal(ok_inf, ok_wide)
+    assert ok_inf.mean() > 0.9
+    np.testing.assert_allclose(d_inf[ok_inf], d_wide[ok_wide])
+    flat = np.full((H, W), 90, np.uint8)
+    _, ok_flat = row_disparity(flat, flat, pts, 0.0, 40.0, min_std=0.0)  # no division by a zero norm
+    assert not ok_flat.any()
+    d_one, ok_one = row_disparity(left, right, pts[0], 0.0, 60.0)  # a single (2,) point
+    assert d_one.shape == (1,) and ok_one[0] == ok_inf[0]
+
+
+def test_row_match_below_the_minimum_disparity_overrules_a_wrong_lk_match() -> None:
+    """``row+lk``: the row search finds the true 1.5 px, below the 3 px minimum (far points dropped);
+    an LK match one texture period off (forced here) must not stand: the points are dropped."""
+    rng = np.random.default_rng(3)
+    grain = cv2.resize(rng.uniform(-1, 1, (H // 3, W // 3)).astype(np.float32), (W, H), interpolation=cv2.INTER_CUBIC)
+    xs, ys = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
+
+    def scene(shift_px: float) -> np.ndarray:
+        x = xs + shift_px
+        grains = cv2.remap(grain, x, ys, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+        img = 128 + 30 * np.sin(2 * np.pi * x / 9.0) + 110 * grains
+        return np.clip(img, 0, 255).astype(np.uint8)
+
+    left, right = scene(0.0), scene(1.5)
+    pts = np.array([[u, v] for u in range(60, 340, 14) for v in range(20, 220, 14)], np.float32)
+    intr = CameraIntrinsics(300.0, 300.0, W / 2, H / 2, W, H)
+    opts = VoOptions(stereo_matcher="row+lk", far_points="drop").for_camera(intr.fx, intr.width)
+    geo = CameraGeometry(intr, 0.1, None, opts, use_depth_images=False)
+    real_lk = geo._lk_disparity
+
+    def lk_one_period_off(*args: object, levels: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        if levels is None:  # the first pass (a keyframe's LK from its guess)
+            n = len(args[2])  # type: ignore[arg-type]
+            return np.full(n, 10.5, np.float32), np.ones(n, bool)
+        return real_lk(*args, levels=levels)  # type: ignore[arg-type]
+
+    geo._lk_disparity = lk_one_period_off  # type: ignore[method-assign]
+    _, ok = geo.points_3d(pts, right, left, None, 0.0)
+    assert ok.mean() < 0.05
