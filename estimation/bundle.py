@@ -49,7 +49,7 @@ def bundle_adjust(
     uv_px: F64,
     K: F64,
     n_fixed: int = 1,
-    huber_px: float = 1.5,
+    loss_scale_px: float = 1.5,
     max_nfev: int = 30,
     disparity_px: F64 | None = None,
     baseline_m: float = 0.1,
@@ -63,7 +63,7 @@ def bundle_adjust(
         uv_px: (n_obs, 2) observed (undistorted) pixels.
         K: (3, 3) intrinsics.
         n_fixed: the first cameras held fixed (>= 1).
-        huber_px: the robust loss's scale (pixels): residuals beyond it count about linearly.
+        loss_scale_px: the robust loss's scale (pixels): residuals beyond it count about linearly.
         max_nfev: cap on function evaluations.
         disparity_px: (n_obs,) measured disparity of each observation (stereo, or depth
             expressed as ``fx * baseline_m / z``), NaN where unknown. Adds a third residual
@@ -142,7 +142,7 @@ def bundle_adjust(
             # Soft-L1, not Huber: with Huber the solver stopped far from the optimum
             # (docs/estimation-log.md, "LK windows at native resolution", local BA).
             loss="soft_l1",
-            f_scale=huber_px,
+            f_scale=loss_scale_px,
             x_scale="jac",
             max_nfev=max_nfev,
             xtol=1e-8,

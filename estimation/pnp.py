@@ -208,9 +208,9 @@ def refine_pose(
     var = np.empty(0) if point_var is None else np.ascontiguousarray(point_var, dtype=np.float64).reshape(-1)
     if point_var is not None and (len(var) != n or not fb_px_m > 0 or not np.all(var >= 0.0)):
         raise EstimationError(
-            f"refine_pose got {n} points, {len(var)} point variances (finite and >= 0: "
-            f"{bool(np.all(var >= 0.0))}) and fb_px_m={fb_px_m}; give one variance per point (each >= 0) "
-            "and the disparities' positive fx * baseline"
+            f"refine_pose got {n} points, {len(var)} point variances (all >= 0: {bool(np.all(var >= 0.0))}) "
+            f"and fb_px_m={fb_px_m}; give one variance per point (each >= 0) and the disparities' positive "
+            "fx * baseline"
         )
     if n < 4:
         return T_cur_ref
