@@ -20,6 +20,8 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
+from estimation._offset_kernel import offset_pair_moments
+
 __all__ = ["DisparityOffset"]
 
 F64 = npt.NDArray[np.float64]
@@ -53,6 +55,7 @@ class DisparityOffset:
         max_offset_px: float = 1.0,
     ) -> None:
         self.fx, self.fy, self.cx, self.cy, self.fb = fx, fy, cx, cy, fx * baseline_m
+        self._cam = np.array([fx, fy, cx, cy], dtype=np.float64)
         self.max_offset_px = max_offset_px
         self.track_sigma_px = track_sigma_px
         self._prior_info = 1.0 / prior_sigma_px**2
@@ -105,46 +108,15 @@ class DisparityOffset:
         # its fit would turn any unmodelled common image motion (a camera at rest) into one.
         if np.linalg.norm(t_prior) * self.fx / self.fb * np.sqrt(n) < self.track_sigma_px:
             return None
-        q = np.c_[(uv0[:, 0] - self.cx) / self.fx, (uv0[:, 1] - self.cy) / self.fy, np.ones(n)] @ R.T
-        m1 = np.c_[(uv1[:, 0] - self.cx) / self.fx, (uv1[:, 1] - self.cy) / self.fy]
-        # Rigid motion at inverse depth rho = (d0 + b) / fb, exactly:
-        #   m1 (q_z + t_z rho) - q_xy = (t_xy - m1 t_z) rho, linear in (t, c = b t).
-        f = np.array([self.fx, self.fy])
-        y = ((m1 * q[:, 2:3] - q[:, :2]) * f).T.ravel()  # px; x equations then y equations
-        X = np.zeros((2 * n, 6))
-        for k in range(2):
-            rows = slice(k * n, (k + 1) * n)
-            s = f[k] / self.fb
-            X[rows, k] = s * d0
-            X[rows, 2] = -s * m1[:, k] * d0
-            X[rows, 3 + k] = s
-            X[rows, 5] = -s * m1[:, k]
-        # Each equation's noise: the tracks' in both frames, the second's scaled by g = Z1 / Z0.
-        rho = np.maximum(d0 + self.offset_px, 1e-3) / self.fb
-        g = q[:, 2] + t_prior[2] * rho
-        # The first frame's disparity d0 is measured too (errors in variables): its noise, about the
-        # tracks', moves equation k by d(y - X theta)/d(d0) = -s_k (t_k - m1_k t_z).
-        lever = np.concatenate([(f[k] / self.fb) * (t_prior[k] - m1[:, k] * t_prior[2]) for k in range(2)])
-        w_noise = 1.0 / np.sqrt(np.tile(1.0 + g * g, 2) + lever * lever)
-        w2 = w_noise * w_noise  # squared weights of the (iteratively reweighted, Huber) normal equations
-        sigma = 1.0
-        try:
-            for it in range(4):
-                Xw = X.T * w2
-                H = Xw @ X
-                theta = np.linalg.solve(H, Xw @ y)
-                if it == 3:
-                    break
-                a = np.abs(y - X @ theta) * w_noise
-                sigma = max(1.4826 * float(np.median(a)), 1e-3)
-                w2 = w_noise * w_noise * np.minimum(1.0, _HUBER * sigma / np.maximum(a, 1e-12))
-            cov = sigma**2 * np.linalg.inv(H)
-            M = np.linalg.inv(cov[3:, 3:])
-        except np.linalg.LinAlgError:
-            return None
-        t, c = theta[:3], theta[3:]
-        num = float(t @ M @ c - np.sum(M * cov[:3, 3:]))
-        den = float(t @ M @ t - np.sum(M * cov[:3, :3]))
-        if not (np.isfinite(num) and np.isfinite(den)):
-            return None
-        return num, den
+        num, den, ok = offset_pair_moments(
+            np.ascontiguousarray(uv0, dtype=np.float64),
+            np.ascontiguousarray(d0, dtype=np.float64),
+            np.ascontiguousarray(uv1, dtype=np.float64),
+            np.ascontiguousarray(R, dtype=np.float64),
+            np.ascontiguousarray(t_prior, dtype=np.float64),
+            self._cam,
+            self.fb,
+            self.offset_px,
+            _HUBER,
+        )
+        return (num, den) if ok else None

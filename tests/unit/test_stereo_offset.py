@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from estimation.motion import make_T
@@ -117,3 +118,54 @@ def test_a_keyframe_observation_starts_the_first_pair() -> None:
     assert not est.waiting and est.pairs == 0
     est.forget()
     assert est.waiting
+
+
+def _pair_moments_numpy(
+    uv0: np.ndarray, d0: np.ndarray, uv1: np.ndarray, T: np.ndarray, offset_px: float, huber: float
+) -> tuple[float, float]:
+    """The pair fit written with a (2N, 6) design matrix (the reference the kernel must equal)."""
+    n, fb, f = len(uv0), FX * B, np.array([FX, FX])
+    R, t = T[:3, :3], T[:3, 3]
+    q = np.c_[(uv0[:, 0] - CX) / FX, (uv0[:, 1] - CY) / FX, np.ones(n)] @ R.T
+    m1 = np.c_[(uv1[:, 0] - CX) / FX, (uv1[:, 1] - CY) / FX]
+    y = ((m1 * q[:, 2:3] - q[:, :2]) * f).T.ravel()
+    X = np.zeros((2 * n, 6))
+    for k in range(2):
+        s, rows = f[k] / fb, slice(k * n, (k + 1) * n)
+        X[rows, k], X[rows, 2], X[rows, 3 + k], X[rows, 5] = s * d0, -s * m1[:, k] * d0, s, -s * m1[:, k]
+    g = q[:, 2] + t[2] * np.maximum(d0 + offset_px, 1e-3) / fb
+    lever = np.concatenate([(f[k] / fb) * (t[k] - m1[:, k] * t[2]) for k in range(2)])
+    w_noise = 1.0 / np.sqrt(np.tile(1.0 + g * g, 2) + lever * lever)
+    w2, sigma = w_noise**2, 1.0
+    for it in range(4):
+        H = (X.T * w2) @ X
+        theta = np.linalg.solve(H, (X.T * w2) @ y)
+        if it < 3:
+            a = np.abs(y - X @ theta) * w_noise
+            sigma = max(1.4826 * float(np.median(a)), 1e-3)
+            w2 = w_noise**2 * np.minimum(1.0, huber * sigma / np.maximum(a, 1e-12))
+    cov = sigma**2 * np.linalg.inv(H)
+    M = np.linalg.inv(cov[3:, 3:])
+    tt, c = theta[:3], theta[3:]
+    return float(tt @ M @ c - np.sum(M * cov[:3, 3:])), float(tt @ M @ tt - np.sum(M * cov[:3, :3]))
+
+
+def test_the_compiled_pair_fit_equals_the_design_matrix_fit() -> None:
+    from estimation._offset_kernel import offset_pair_moments
+
+    rng = np.random.default_rng(5)
+    n = 250
+    z = rng.uniform(4.0, 60.0, n)
+    X0 = np.c_[rng.uniform(-0.8, 0.8, n) * z, rng.uniform(-0.2, 0.2, n) * z, z]
+    T = make_T(Rotation.from_euler("xyz", [0.2, 0.5, -0.1], degrees=True).as_matrix(), np.array([0.05, 0.02, -1.1]))
+    X1 = X0 @ T[:3, :3].T + T[:3, 3]
+    uv0 = np.c_[FX * X0[:, 0] / X0[:, 2] + CX, FX * X0[:, 1] / X0[:, 2] + CY] + rng.normal(0, 0.1, (n, 2))
+    uv1 = np.c_[FX * X1[:, 0] / X1[:, 2] + CX, FX * X1[:, 1] / X1[:, 2] + CY] + rng.normal(0, 0.1, (n, 2))
+    uv1[:20] += rng.normal(0, 8.0, (20, 2))  # gross outliers: the Huber reweighting has work to do
+    d0 = FX * B / X0[:, 2] - 0.3 + rng.normal(0, 0.1, n)
+    cam = np.array([FX, FX, CX, CY])
+    num, den, ok = offset_pair_moments(uv0, d0, uv1, T[:3, :3].copy(), T[:3, 3].copy(), cam, FX * B, 0.1, 2.0)
+    ref_num, ref_den = _pair_moments_numpy(uv0, d0, uv1, T, 0.1, 2.0)
+    assert ok
+    assert num == pytest.approx(ref_num, rel=1e-9) and den == pytest.approx(ref_den, rel=1e-9)
+    assert 0.2 < num / den < 0.4  # the pair alone reads the 0.3 px offset
