@@ -33,8 +33,9 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from estimation.frames import FramePreparer
 from estimation.motion import invert, make_T
-from estimation.pipeline import STAGES, FramePose, FramePreparer, Method, Quality, VoResult, collect_result
+from estimation.pipeline import STAGES, FramePose, Method, Quality, VoResult, collect_result
 from flightkit.errors import EstimationError
 
 if TYPE_CHECKING:

@@ -54,7 +54,6 @@ import math
 import time
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import cv2
@@ -64,6 +63,7 @@ import numpy.typing as npt
 from estimation.estimators import MotionEstimator, Tracks, keyframe_estimator
 from estimation.features import as_gray
 from estimation.flow_vo import FlowEstimator
+from estimation.frames import FramePreparer
 from estimation.frontend import CameraGeometry, FrontEnd, disparity_variance
 from estimation.local_ba import LocalBundleWindow
 from estimation.motion import Motion, invert, median
@@ -84,7 +84,7 @@ from flightkit.errors import EstimationError
 from flightkit.frames import Transform
 
 if TYPE_CHECKING:
-    from flightkit.datasets.base import CameraIntrinsics, Frame, Sequence
+    from flightkit.datasets.base import CameraIntrinsics, Sequence
 
 __all__ = [
     "MAX_FAILED_FRACTION",
@@ -92,7 +92,6 @@ __all__ = [
     "EssentialOptions",
     "FlowOptions",
     "FramePose",
-    "FramePreparer",
     "KabschOptions",
     "Method",
     "PnpOptions",
@@ -442,55 +441,6 @@ class VisualOdometry:
                 timer.lap("ba")
         self.prev_gray, pose.prev_stamp_ns = gray, stamp_ns
         return self._emit(stamp_ns, n_inl, quality, is_kf, timer)
-
-
-# ---------------------------------------------------------------------------------------------
-def _resize_intrinsics(intr: CameraIntrinsics, size: tuple[int, int]) -> CameraIntrinsics:
-    from flightkit.datasets.base import CameraIntrinsics
-
-    w, h = size
-    sx, sy = w / intr.width, h / intr.height
-    return CameraIntrinsics(
-        intr.fx * sx, intr.fy * sy, (intr.cx + 0.5) * sx - 0.5, (intr.cy + 0.5) * sy - 0.5, w, h, intr.dist
-    )
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class PreparedFrame:
-    """Images ready for :meth:`VisualOdometry.process` (decoded, resized, depth in metres)."""
-
-    stamp_ns: int
-    gray: npt.NDArray[np.uint8]
-    right_gray: npt.NDArray[np.uint8] | None
-    depth_m: F32 | None
-    T_world_camera: Transform | None
-
-
-class FramePreparer:
-    """Converts dataset frames for a method and an optional processing size (reuses no
-    buffers across frames: the frames own their images)."""
-
-    def __init__(self, sequence: Sequence, method: Method, size: tuple[int, int] | None) -> None:
-        self.method = method
-        intr = sequence.intrinsics
-        self.size = size if size is not None and size != (intr.width, intr.height) else None
-        self.intrinsics = _resize_intrinsics(intr, self.size) if self.size else intr
-        di = sequence.depth_intrinsics
-        self.depth_intrinsics = _resize_intrinsics(di, self.size) if (self.size and di is not None) else di
-        self.want_depth = method.needs_depth or (method is Method.FLOW and di is not None)
-        self.want_right = method is Method.STEREO or (method is Method.FLOW and di is None)
-
-    def __call__(self, frame: Frame) -> PreparedFrame:
-        gray = frame.gray
-        right = frame.right_gray if self.want_right else None
-        depth = frame.depth_m if self.want_depth else None
-        if self.size is not None:
-            gray = np.asarray(cv2.resize(gray, self.size, interpolation=cv2.INTER_AREA), dtype=np.uint8)
-            if right is not None:
-                right = np.asarray(cv2.resize(right, self.size, interpolation=cv2.INTER_AREA), dtype=np.uint8)
-            if depth is not None:
-                depth = np.asarray(cv2.resize(depth, self.size, interpolation=cv2.INTER_NEAREST), dtype=np.float32)
-        return PreparedFrame(frame.stamp_ns, gray, right, depth, frame.T_world_camera)
 
 
 def warm_up(method: Method | str) -> list[FramePose]:

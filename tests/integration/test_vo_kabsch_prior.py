@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from estimation.pipeline import FramePreparer, KabschOptions, Method, Quality, VisualOdometry, VoOptions, run_vo
+from estimation.frames import FramePreparer
+from estimation.pipeline import KabschOptions, Method, Quality, VisualOdometry, VoOptions, run_vo
 from flightkit.apps.sequences import synthetic_sequence
 
 
