@@ -57,6 +57,7 @@ PURE_MODULES = (
     "estimation/evaluation.py",
     "estimation/report/protocol.py",
     "estimation/report/link_session.py",
+    "estimation/report/events.py",
     "estimation/report/endpoints.py",
 )
 
