@@ -461,15 +461,32 @@ class FrontEnd:
     def restore(self, kf: StoredKeyframe, gray: U8, T_world_cam: F64) -> bool:
         """Return to a kept keyframe: track its points from its image into ``gray`` (LK from their
         projection at ``T_world_cam``, forward-backward checked) and make it the keyframe if at
-        least the keyframe policy's share and count of them are tracked; else change nothing."""
+        least the keyframe policy's share and count of them are tracked and agree on one pose
+        (the others are dropped); else change nothing."""
         g = self.geo
         guess, vis = g.project(invert(T_world_cam) @ kf.T_world_kf, kf.X)
         px, ok = self._lk(kf.gray, gray, kf.px, np.where(vis[:, None], guess, kf.px), g.klt_levels)
         ok &= vis
         policy = self.opts.keyframes
-        n_ok = int(np.count_nonzero(ok))
-        if n_ok < max(policy.min_tracked, policy.min_tracked_fraction * len(kf.X)):
+        need = max(policy.min_tracked, policy.min_tracked_fraction * len(kf.X))
+        if np.count_nonzero(ok) < need:
             return False
+        # The tracks must agree on one pose (PnP RANSAC from the kept points): LK from another
+        # viewpoint also lands on look-alike texture, and a return measured from those jumps.
+        sel = np.flatnonzero(ok)
+        check = pnp(
+            kf.X[sel],
+            g.undistort(px[sel]),
+            g.K,
+            method="iterative",
+            reproj_px=self.opts.reproj_px,
+            guess_T_cur_ref=invert(T_world_cam) @ kf.T_world_kf,
+            ransac_kernel="ap3p",
+        )
+        if not check.ok or np.count_nonzero(check.inliers) < need:
+            return False
+        ok[:] = False
+        ok[sel[check.inliers]] = True
         self.kf_X, self.kf_px, self.kf_ids, self.kf_w = kf.X[ok], kf.px[ok], kf.ids[ok], kf.w[ok]
         self.trk_px = np.ascontiguousarray(px[ok])
         self.kf_n0 = len(kf.X)

@@ -89,3 +89,38 @@ def test_restore_tracks_the_kept_points_into_the_current_image() -> None:
     before = front.kf_ids.copy()
     assert not front.restore(kept, _texture(3)[20:-20, 20:-20], T_world_cam)
     np.testing.assert_array_equal(front.kf_ids, before)
+
+
+def test_restore_keeps_only_tracks_that_agree_on_one_pose() -> None:
+    """LK from the kept image lands on texture that moved on its own (an object, or look-alike
+    texture from another viewpoint): those tracks are dropped, and when they are too many for
+    the keyframe policy the return is refused and the front end left as it was."""
+    geo, o = _geometry()
+    front = FrontEnd(geo, o, stereo=False)
+    big = _texture(1)
+    kf_img = np.ascontiguousarray(big[20:-20, 20:-20])
+    depth = np.full((INTR.height, INTR.width), DEPTH_M, np.float32)
+    front.make_keyframe(kf_img, None, depth, np.eye(4), None)
+    kept = front.snapshot()
+    front.make_keyframe(_texture(2)[20:-20, 20:-20], None, depth, _yaw(10.0), None)
+    shift = np.array([6.0, 4.0])
+    T_world_cam = make_T(np.eye(3), np.r_[shift * DEPTH_M / INTR.fx, 0.0])
+
+    def view(moved_cols: int) -> np.ndarray:
+        """The kept view after the camera's shift, with its ``moved_cols`` left columns shifted 8 px
+        further (the same texture, so LK tracks them, but at a motion no pose explains)."""
+        cur = np.ascontiguousarray(big[24:-16, 26:-14])
+        cur[:, :moved_cols] = big[24:-16, 34 : 34 + moved_cols]
+        return cur
+
+    # A fifth of the image moved: the return is taken, without the points there.
+    assert front.restore(kept, view(128), T_world_cam)
+    assert 0.7 * len(kept.X) <= len(front.kf_X) < 0.9 * len(kept.X)
+    assert np.all(front.kf_px[:, 0] > 128 + shift[0] - 12)
+    err = np.linalg.norm(front.trk_px - (front.kf_px - shift.astype(np.float32)), axis=1)
+    assert np.max(err) < 0.5
+    # Half of it moved: LK tracks nearly every point, but only half agree; refused, nothing changed.
+    front.make_keyframe(_texture(2)[20:-20, 20:-20], None, depth, _yaw(10.0), None)
+    before = front.kf_ids.copy()
+    assert not front.restore(kept, view(320), T_world_cam)
+    np.testing.assert_array_equal(front.kf_ids, before)
