@@ -19,7 +19,7 @@ import threading
 import time
 
 from estimation.report.endpoints import RobotEndpoint, ServerEndpoint
-from estimation.report.link_session import PoseReceived, SegmentReceived
+from estimation.report.events import PoseReceived, SegmentReceived
 from estimation.report.messages import PoseUpdate, Segment, encode_pose
 from estimation.report.protocol import Frame, encode_frame
 from estimation.report.relay import Faults, PtyRelay

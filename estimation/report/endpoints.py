@@ -9,7 +9,8 @@ import random
 from collections import deque
 from dataclasses import dataclass, field
 
-from .link_session import Event, Role, Session, SessionConfig, SessionState
+from .events import Event
+from .link_session import Role, Session, SessionConfig, SessionState
 from .messages import Capability, Goodbye, GoodbyeReason, MsgType, encode_goodbye
 from .protocol import Deframer, Frame, encode_frame
 

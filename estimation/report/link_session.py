@@ -69,15 +69,7 @@ from .messages import (
 from .protocol import Frame, seq_newer
 
 __all__ = [
-    "Connected",
-    "Delivered",
-    "Event",
-    "LinkLost",
-    "NavOrderReceived",
-    "PeerGoodbye",
-    "PoseReceived",
     "Role",
-    "SegmentReceived",
     "Session",
     "SessionConfig",
     "SessionState",

@@ -26,7 +26,8 @@ from flightkit.errors import ProtocolError
 from flightkit.lifetime import Running
 
 from .endpoints import ServerEndpoint
-from .link_session import Connected, Delivered, LinkLost, PeerGoodbye, PoseReceived, SegmentReceived, SessionConfig
+from .events import Connected, Delivered, LinkLost, PeerGoodbye, PoseReceived, SegmentReceived
+from .link_session import SessionConfig
 from .messages import MsgType, NavOrder, PoseUpdate, Segment
 from .transport import PortLost, PortOpened, SerialTransport, TransportEvent
 

@@ -38,7 +38,8 @@ from flightkit.mocap.base import MocapSource
 from flightkit.settings import setting
 
 from .endpoints import RobotEndpoint
-from .link_session import Connected, LinkLost, NavOrderReceived, PeerGoodbye, SessionConfig, SessionStats
+from .events import Connected, LinkLost, NavOrderReceived, PeerGoodbye
+from .link_session import SessionConfig, SessionStats
 from .mapframe import MapFrame, MapFrameConfig
 from .messages import Capability, NavOrder, Segment
 from .transport import PortLost, PortOpened, SerialTransport, TransportEvent

@@ -37,7 +37,7 @@ from flightkit.clock import Clock, WallClock
 from flightkit.errors import ProtocolError
 from flightkit.lifetime import Running
 
-from .link_session import Event
+from .events import Event
 
 __all__ = ["Endpoint", "PortLost", "PortOpened", "SerialTransport", "TransportEvent", "TransportStats"]
 

@@ -42,7 +42,7 @@ class PoseLog:
         orig = server._on_event
 
         def hook(port: str, ev: object) -> None:
-            from estimation.report.link_session import PoseReceived
+            from estimation.report.events import PoseReceived
 
             if isinstance(ev, PoseReceived):
                 self.stamps.setdefault(ev.robot_id, []).append(ev.pose.stamp_us)

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import pytest
 
 from estimation.report.endpoints import RobotEndpoint, ServerEndpoint
-from estimation.report.link_session import (
+from estimation.report.events import (
     Connected,
     Delivered,
     Event,
@@ -21,9 +21,8 @@ from estimation.report.link_session import (
     PeerGoodbye,
     PoseReceived,
     SegmentReceived,
-    SessionConfig,
-    SessionState,
 )
+from estimation.report.link_session import SessionConfig, SessionState
 from estimation.report.messages import GoodbyeReason, NavOrder, PoseUpdate, Segment
 from flightkit.errors import ProtocolError
 

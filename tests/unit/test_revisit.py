@@ -61,18 +61,24 @@ def _texture(seed: int) -> np.ndarray:
     return cv2.normalize(img, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
 
 
-def test_restore_tracks_the_kept_points_into_the_current_image() -> None:
+def _front_back_near_a_kept_keyframe() -> tuple[FrontEnd, StoredKeyframe, np.ndarray]:
+    """A front end that kept a keyframe of a textured wall (``big``'s middle), then made another of
+    a different view; the camera is to come back near the kept one."""
     geo, o = _geometry()
     front = FrontEnd(geo, o, stereo=False)
     big = _texture(1)
-    kf_img = np.ascontiguousarray(big[20:-20, 20:-20])
     depth = np.full((INTR.height, INTR.width), DEPTH_M, np.float32)
-    front.make_keyframe(kf_img, None, depth, np.eye(4), None)
+    front.make_keyframe(np.ascontiguousarray(big[20:-20, 20:-20]), None, depth, np.eye(4), None)
     kept = front.snapshot()
     assert len(kept.X) > 100
-    # Another keyframe in between (another view), then the camera is back near the kept one:
-    # moved 6 px worth to the right and 4 px down (the wall's content moves left and up).
     front.make_keyframe(_texture(2)[20:-20, 20:-20], None, depth, _yaw(10.0), None)
+    return front, kept, big
+
+
+def test_restore_tracks_the_kept_points_into_the_current_image() -> None:
+    front, kept, big = _front_back_near_a_kept_keyframe()
+    # Back near the kept keyframe: moved 6 px worth to the right and 4 px down (the wall's content
+    # moves left and up).
     shift = np.array([6.0, 4.0])
     cur = np.ascontiguousarray(big[24:-16, 26:-14])
     T_world_cam = make_T(np.eye(3), np.r_[shift * DEPTH_M / INTR.fx, 0.0])
@@ -95,14 +101,7 @@ def test_restore_keeps_only_tracks_that_agree_on_one_pose() -> None:
     """LK from the kept image lands on texture that moved on its own (an object, or look-alike
     texture from another viewpoint): those tracks are dropped, and when they are too many for
     the keyframe policy the return is refused and the front end left as it was."""
-    geo, o = _geometry()
-    front = FrontEnd(geo, o, stereo=False)
-    big = _texture(1)
-    kf_img = np.ascontiguousarray(big[20:-20, 20:-20])
-    depth = np.full((INTR.height, INTR.width), DEPTH_M, np.float32)
-    front.make_keyframe(kf_img, None, depth, np.eye(4), None)
-    kept = front.snapshot()
-    front.make_keyframe(_texture(2)[20:-20, 20:-20], None, depth, _yaw(10.0), None)
+    front, kept, big = _front_back_near_a_kept_keyframe()
     shift = np.array([6.0, 4.0])
     T_world_cam = make_T(np.eye(3), np.r_[shift * DEPTH_M / INTR.fx, 0.0])
 
@@ -120,7 +119,7 @@ def test_restore_keeps_only_tracks_that_agree_on_one_pose() -> None:
     err = np.linalg.norm(front.trk_px - (front.kf_px - shift.astype(np.float32)), axis=1)
     assert np.max(err) < 0.5
     # Half of it moved: LK tracks nearly every point, but only half agree; refused, nothing changed.
-    front.make_keyframe(_texture(2)[20:-20, 20:-20], None, depth, _yaw(10.0), None)
+    front, kept, big = _front_back_near_a_kept_keyframe()
     before = front.kf_ids.copy()
     assert not front.restore(kept, view(320), T_world_cam)
     np.testing.assert_array_equal(front.kf_ids, before)
