@@ -285,7 +285,8 @@ async def fly_closed_loop(
     Raises:
         SafetyAbort: a preflight check failed. LinkError / BusError: the set-up failed.
     """
-    from estimation.live import LiveVo, LiveVoConfig
+    from estimation.live import LiveVo
+    from estimation.live_config import LiveVoConfig
     from flightkit.bus.keys import Keys
     from flightkit.bus.session import open_session
     from flightkit.bus.streams import CameraStreamSelection

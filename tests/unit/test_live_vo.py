@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from estimation.live import LiveVoConfig, external_pose_from_frame, vision_uncertainty
+from estimation.live_config import LiveVoConfig, external_pose_from_frame, vision_uncertainty
 from estimation.live_inputs import FramePairer, intrinsics_from_camera_info
 from estimation.pipeline import FramePose, Quality
 from flightkit.bus.image_msgs import CameraInfo
