@@ -97,6 +97,7 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             item.add_marker(skip)
 
 
+@pytest.hookimpl(optionalhook=True)  # a hook of pytest-xdist: without it, unused
 def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object:
     """Under ``--dist loadgroup``, the paced modules form one work unit (one worker runs them in
     turn); every other test is a unit of its own. Grouped here by the test's file, in the
