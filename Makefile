@@ -19,8 +19,10 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/flightkit demo
 
+# Two workers (pytest-xdist): the wall-paced simulator tests run one after another in one of them
+# (tests/conftest.py, PACED_MODULES), everything else shares out over both.
 test: $(STAMP)
-	$(PY) -m pytest -q --durations=25
+	$(PY) -m pytest -q -n 2 --dist loadgroup --durations=25
 
 bench: $(STAMP)
 	@for b in bench/*.py; do echo "== $$b"; $(PY) $$b || exit 1; done

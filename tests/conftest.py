@@ -33,8 +33,15 @@ def _private_bus_port() -> int:
 
 # The test run's own bus: every embedded-default Zenoh session of the tests and of the commands
 # they start meets on this port instead of 7447, so tests never join a lab's bus on this machine,
-# nor another test run's (flightkit/bus/session.py, FLIGHTKIT_BUS_PORT).
-os.environ.setdefault("FLIGHTKIT_BUS_PORT", str(_private_bus_port()))
+# nor another test run's (flightkit/bus/session.py, FLIGHTKIT_BUS_PORT). A port given in the
+# environment is kept; one picked by another process is not: each pytest-xdist worker inherits the
+# controller's pick and takes a port of its own, so two workers' tests never share a bus.
+_BUS_PORT_PICKED_BY = "FLIGHTKIT_TEST_BUS_PORT_PICKED_BY"
+if "FLIGHTKIT_BUS_PORT" not in os.environ or os.environ.get(_BUS_PORT_PICKED_BY, str(os.getpid())) != str(
+    os.getpid()
+):
+    os.environ["FLIGHTKIT_BUS_PORT"] = str(_private_bus_port())
+    os.environ[_BUS_PORT_PICKED_BY] = str(os.getpid())
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO_ROOT.parent / "shared" / "data"
@@ -44,6 +51,43 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption("--hardware", action="store_true", default=False, help="run tests that need real hardware")
 
 
+# Test modules whose simulated time follows the wall clock (a SimClock at a speed-up, a flight in
+# a subprocess) or whose waits are bounded in wall time. Under pytest-xdist (`make test` runs two
+# workers, --dist loadgroup) they all run one after another in one worker, at normal CPU priority:
+# two accelerated flights at once on a 2-core machine starve each other's control loop (measured:
+# 40 Hz instead of 100). tests/unit/test_paced_group.py checks that no such module is left out.
+PACED_MODULES = frozenset({
+    "tests/integration/test_bus.py",
+    "tests/integration/test_capture_cli.py",
+    "tests/integration/test_capture_sources.py",
+    "tests/integration/test_clock_exchange.py",
+    "tests/integration/test_closed_loop.py",
+    "tests/integration/test_demo.py",
+    "tests/integration/test_examples.py",
+    "tests/integration/test_fleet.py",
+    "tests/integration/test_fleet_shared_link.py",
+    "tests/integration/test_fly_faults.py",
+    "tests/integration/test_fly_latency.py",
+    "tests/integration/test_fly_on_autopilot_estimate.py",
+    "tests/integration/test_fly_patterns.py",
+    "tests/integration/test_link_mavlink.py",
+    "tests/integration/test_link_mavsdk.py",
+    "tests/integration/test_link_mavsdk_tcp.py",
+    "tests/integration/test_mocap.py",
+    "tests/integration/test_mocap_simulated.py",
+    "tests/integration/test_preflight_failsafe.py",
+    "tests/integration/test_report_pty.py",
+    "tests/integration/test_sim_autopilot.py",
+    "tests/integration/test_sim_stepper.py",
+    "tests/unit/test_clock.py",
+})
+PACED_GROUP = "paced"
+
+
+def _is_paced(item: pytest.Item) -> bool:
+    return item.path.relative_to(REPO_ROOT).as_posix() in PACED_MODULES
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     if config.getoption("--hardware"):
         return
@@ -51,6 +95,40 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     for item in items:
         if "hardware" in item.keywords:
             item.add_marker(skip)
+
+
+@pytest.hookimpl(optionalhook=True)  # a hook of pytest-xdist: without it, unused
+def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object:
+    """Under ``--dist loadgroup``, the paced modules form one work unit (one worker runs them in
+    turn); every other test is a unit of its own. Grouped here by the test's file, in the
+    controller: pytest-xdist 3.8's own ``xdist_group`` mark renames the test's node id, which pytest
+    9 no longer allows, and is silently ignored."""
+    if config.getvalue("dist") != "loadgroup":
+        return None
+    from xdist.scheduler import LoadGroupScheduling
+
+    class PacedGroupScheduling(LoadGroupScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            if nodeid.split("::", 1)[0] in PACED_MODULES:
+                return PACED_GROUP
+            return super()._split_scope(nodeid)
+
+    return PacedGroupScheduling(config, log)  # type: ignore[arg-type]
+
+
+_first_test_seen = False
+
+
+def pytest_runtest_setup(item: pytest.Item) -> None:
+    """In a pytest-xdist worker whose first test is not a paced one (so the paced group went to the
+    other worker), lower this worker's CPU priority: its tests do not depend on wall time, and on a
+    loaded machine the paced worker's flights then get the CPU they need first."""
+    global _first_test_seen
+    if _first_test_seen:
+        return
+    _first_test_seen = True
+    if os.environ.get("PYTEST_XDIST_WORKER") and item.config.getvalue("loadgroup") and not _is_paced(item):
+        os.nice(10)
 
 
 def free_udp_port() -> int:
