@@ -5,9 +5,10 @@ drone) would otherwise chain a new keyframe, and a new error, on every swing. Wh
 policy asks for a new keyframe, :meth:`KeyframeStore.best` looks for a kept keyframe the
 policy would still accept from the current pose (its own limits on rotation, baseline, points
 in view and parallax); the front end then tracks its points from its image into the current
-one (``FrontEnd.restore``) and the next poses are measured against it, so the error made
-since it was current does not add up. The pose jumps by that error when it returns
-(docs/estimation-log.md, "Issue 15, eighth pass, RGB-D rotation").
+one (``FrontEnd.restore``, which takes the return only when enough of those tracks agree on one
+pose) and the next poses are measured against it, so the error made since it was current does
+not add up. The pose jumps by that error when it returns (docs/estimation-log.md, "Issue 15,
+eighth pass, RGB-D rotation" and "thirteenth pass").
 """
 
 from __future__ import annotations
