@@ -464,7 +464,8 @@ class FrontEnd:
         least the keyframe policy's share and count of them are tracked and agree on one pose
         (the others are dropped); else change nothing."""
         g = self.geo
-        guess, vis = g.project(invert(T_world_cam) @ kf.T_world_kf, kf.X)
+        T_cur_kf = invert(T_world_cam) @ kf.T_world_kf
+        guess, vis = g.project(T_cur_kf, kf.X)
         px, ok = self._lk(kf.gray, gray, kf.px, np.where(vis[:, None], guess, kf.px), g.klt_levels)
         ok &= vis
         policy = self.opts.keyframes
@@ -480,7 +481,7 @@ class FrontEnd:
             g.K,
             method="iterative",
             reproj_px=self.opts.reproj_px,
-            guess_T_cur_ref=invert(T_world_cam) @ kf.T_world_kf,
+            guess_T_cur_ref=T_cur_kf,
             ransac_kernel="ap3p",
         )
         if not check.ok or np.count_nonzero(check.inliers) < need:
