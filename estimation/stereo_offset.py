@@ -55,7 +55,6 @@ class DisparityOffset:
         max_offset_px: float = 1.0,
     ) -> None:
         self.fx, self.fy, self.cx, self.cy, self.fb = fx, fy, cx, cy, fx * baseline_m
-        self._cam = np.array([fx, fy, cx, cy], dtype=np.float64)
         self.max_offset_px = max_offset_px
         self.track_sigma_px = track_sigma_px
         self._prior_info = 1.0 / prior_sigma_px**2
@@ -114,7 +113,7 @@ class DisparityOffset:
             np.ascontiguousarray(uv1, dtype=np.float64),
             np.ascontiguousarray(R, dtype=np.float64),
             np.ascontiguousarray(t_prior, dtype=np.float64),
-            self._cam,
+            np.array((self.fx, self.fy, self.cx, self.cy), dtype=np.float64),
             self.fb,
             self.offset_px,
             _HUBER,
