@@ -30,6 +30,7 @@ from estimation.motion import Motion, median
 from estimation.pnp import pnp, refine_pose
 from estimation.polish import PosePolisher
 from estimation.rigid import ransac_rigid, rigid_from_prior, rigidity_inliers
+from estimation.rolling_shutter import CameraRate
 from estimation.vo_options import EssentialOptions, KabschOptions, Method, PnpOptions, VoOptions
 
 __all__ = [
@@ -56,12 +57,15 @@ class Tracks:
     Attributes:
         X_kf: (N, 3) the points in the keyframe's camera frame, m.
         px_kf: (N, 2) their pixels in the keyframe.
-        px_cur, und_cur: (N, 2) their pixels in the current frame (as tracked; undistorted).
+        px_cur, und_cur: (N, 2) their pixels in the current frame (as tracked; undistorted, at the
+            frame's stamp).
         guess: the predicted ``T_cur_kf`` (constant velocity).
         has_prior: the prediction comes from a measured motion (not the identity of a start).
         gray, right_gray, depth_m: the current frame's images (right or depth None when absent).
         var_kf: (N,) the points' keyframe disparity variance over one measurement's
             (``frontend.disparity_variance``), or None (``VoOptions.point_uncertainty`` off).
+        rate, rate_kf: the camera's rate at the current frame and at the keyframe, for a rolling
+            shutter (None: a global shutter or unknown).
     """
 
     X_kf: F64
@@ -74,6 +78,8 @@ class Tracks:
     right_gray: U8 | None
     depth_m: F32 | None
     var_kf: F64 | None = None
+    rate: CameraRate | None = None
+    rate_kf: CameraRate | None = None
 
 
 class MotionEstimator(Protocol):
@@ -96,7 +102,7 @@ class EssentialEstimator:
         """See :meth:`MotionEstimator.estimate`."""
         geo, o, eo = self.geo, self.opts, self.eo
         X_kf, und_cur, guess = t.X_kf, t.und_cur, t.guess
-        und_kf = geo.undistort(t.px_kf)
+        und_kf = geo.undistort(t.px_kf, t.rate_kf, t.X_kf[:, 2])
         parallax = median(np.linalg.norm(und_cur - und_kf, axis=1))
         n = len(t.px_cur)
         m = Motion(guess, np.zeros(n, dtype=bool), False)
@@ -162,6 +168,7 @@ class EssentialEstimator:
                 eo.pnp_prior_gate_px,
                 eo.prior_min_fraction,
                 t.var_kf,
+                t.rate,
             )
             if m_pp is not None:
                 self.paths["pnp-prior"] += 1
@@ -178,7 +185,9 @@ class EssentialEstimator:
                 guess_T_cur_ref=guess,
                 ransac_kernel=o.pnp_kernel,
             )
-        return self.polisher.polish(m, X_kf, t.px_cur, und_cur, t.depth_m, t.gray, t.right_gray, var_kf=t.var_kf)
+        return self.polisher.polish(
+            m, X_kf, t.px_cur, und_cur, t.depth_m, t.gray, t.right_gray, var_kf=t.var_kf, rate=t.rate
+        )
 
 
 class KabschEstimator:
@@ -199,9 +208,8 @@ class KabschEstimator:
         """See :meth:`MotionEstimator.estimate`."""
         geo, o, ko = self.geo, self.opts, self.ko
         assert t.depth_m is not None
-        z = geo.depth_at(t.depth_m, t.px_cur)
-        ok = np.isfinite(z)
-        X_cur = geo.backproject(t.und_cur, np.where(ok, z, 1.0))
+        X_cur, ok = geo.depth_points(t.depth_m, t.px_cur, t.rate)
+        z = np.where(ok, X_cur[:, 2], np.nan)
         idx = np.flatnonzero(ok)
         all_ok = len(idx) == len(ok)  # usual: no copies of the pairs
         X_ref = t.X_kf if all_ok else t.X_kf[idx]
@@ -237,7 +245,7 @@ class KabschEstimator:
         if not ko.polish:
             return m
         return self.polisher.polish(
-            m, t.X_kf, t.px_cur, t.und_cur, t.depth_m, t.gray, t.right_gray, z, t.var_kf
+            m, t.X_kf, t.px_cur, t.und_cur, t.depth_m, t.gray, t.right_gray, z, t.var_kf, t.rate
         )
 
 
@@ -263,7 +271,7 @@ class PnpEstimator:
         if t.right_gray is None or geo.rig is None:
             return np.ones(n, dtype=bool)
         init = (geo.rig.fx * geo.rig.baseline_m / np.maximum(t.X_kf[:, 2], 1e-3)).astype(np.float32)
-        X_cur, ok = geo.points_3d(t.px_cur, t.right_gray, t.gray, None, init)
+        X_cur, ok = geo.points_3d(t.px_cur, t.right_gray, t.gray, None, init, rate=t.rate)
         sel = np.zeros(n, dtype=bool)
         idx = np.flatnonzero(ok)
         if len(idx) >= o.min_inliers:
@@ -293,6 +301,7 @@ class PnpEstimator:
                 po.prior_gate_px,
                 po.prior_min_fraction,
                 None if t.var_kf is None else t.var_kf[idx],
+                t.rate,
             )
             if m_prior is not None:
                 self.paths["pnp-prior"] += 1
@@ -324,6 +333,7 @@ class PnpEstimator:
                 t.gray,
                 t.right_gray,
                 var_kf=None if t.var_kf is None else t.var_kf[mask],
+                rate=t.rate,
             )
             self.polisher.remap(mask)
         return Motion(T, mask, m.ok)

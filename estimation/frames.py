@@ -27,7 +27,14 @@ def _resize_intrinsics(intr: CameraIntrinsics, size: tuple[int, int]) -> CameraI
     w, h = size
     sx, sy = w / intr.width, h / intr.height
     return CameraIntrinsics(
-        intr.fx * sx, intr.fy * sy, (intr.cx + 0.5) * sx - 0.5, (intr.cy + 0.5) * sy - 0.5, w, h, intr.dist
+        intr.fx * sx,
+        intr.fy * sy,
+        (intr.cx + 0.5) * sx - 0.5,
+        (intr.cy + 0.5) * sy - 0.5,
+        w,
+        h,
+        intr.dist,
+        intr.readout_s,
     )
 
 

@@ -24,6 +24,7 @@ from estimation.matching import match_descriptors, match_stereo_rows
 from estimation.motion import Motion, invert
 from estimation.pnp import pnp
 from estimation.revisit import StoredKeyframe
+from estimation.rolling_shutter import CameraRate, RollingShutter
 from estimation.stereo import StereoRig, row_disparity, sparse_disparity, triangulate
 from estimation.vo_options import VoOptions
 from flightkit.errors import EstimationError
@@ -86,13 +87,42 @@ class CameraGeometry:
         self.klt_levels = 3 if options.klt_levels is None else options.klt_levels
         self.klt_back_levels = min(options.klt_back_levels, self.klt_levels)
         self.stereo_win = options.stereo_win_px or self.klt_win
+        readout_s = intrinsics.readout_s if options.readout_s is None else options.readout_s
+        self.shutter = (
+            RollingShutter(readout_s, intrinsics.height, intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy)
+            if readout_s > 0
+            else None
+        )
+        """The rolling shutter's row timing (None: a global shutter)."""
 
-    def undistort(self, px: F32) -> F64:
-        """Undistorted pixels (float64) of image pixels."""
+    def undistort(self, px: F32, rate: CameraRate | None = None, z_m: F64 | None = None) -> F64:
+        """Undistorted pixels (float64) of image pixels; with the camera's ``rate`` at that image,
+        moved from their rows' times to the image's stamp (a rolling shutter; ``z_m``: their depths
+        when known)."""
         if self.dist is None or len(px) == 0:
-            return np.asarray(px, dtype=np.float64)
-        out = cv2.undistortPoints(px.reshape(-1, 1, 2).astype(np.float64), self.K, self.dist, P=self.K)
-        return np.asarray(out.reshape(-1, 2), dtype=np.float64)
+            und = np.asarray(px, dtype=np.float64)
+        else:
+            out = cv2.undistortPoints(px.reshape(-1, 1, 2).astype(np.float64), self.K, self.dist, P=self.K)
+            und = np.asarray(out.reshape(-1, 2), dtype=np.float64)
+        if self.shutter is not None and rate is not None:
+            und = self.shutter.pixels(und, px[:, 1], rate, z_m)
+        return und
+
+    def depth_points(self, depth_m: F32, px: F32, rate: CameraRate | None = None) -> tuple[F64, Bool]:
+        """3D points (camera frame at the image's stamp) of image pixels from the depth image, and
+        which have depth; ``rate``: the camera's at that image (a rolling shutter)."""
+        z = self.depth_at(depth_m, px)
+        ok = np.isfinite(z)
+        und = self.undistort(px)
+        if self.shutter is None or rate is None or not len(px):
+            return self.backproject(und, np.where(ok, z, 1.0)), ok
+        # The depth image is read where the point is at the stamp: taken as a global-shutter image
+        # at the colour stamp, which measured better than giving it the colour rows' timing
+        # (docs/estimation-log.md).
+        und_mid = self.shutter.pixels(und, px[:, 1], rate, np.where(ok, z, 1e9))
+        z = self.depth_at(depth_m, (px + (und_mid - und)).astype(np.float32))
+        ok = np.isfinite(z)
+        return self.backproject(und_mid, np.where(ok, z, 1.0)), ok
 
     def backproject(self, px_undist: F64, z: F64) -> F64:
         """3D points (camera frame) of undistorted pixels at depths ``z``."""
@@ -132,18 +162,16 @@ class CameraGeometry:
         depth_m: F32 | None,
         init_disp: F32 | float = 0.0,
         max_depth_m: float | None = None,
+        rate: CameraRate | None = None,
     ) -> tuple[F64, Bool]:
         """3D points (camera frame) for pixels, from the depth image or the stereo pair, and
-        which are valid.
+        which are valid; ``rate``: the camera's at this image (a rolling shutter).
 
         Raises:
             EstimationError: neither depth nor a stereo pair.
         """
         if depth_m is not None and self.use_depth_images:
-            z = self.depth_at(depth_m, px)
-            ok = np.isfinite(z)
-            X = self.backproject(self.undistort(px), np.where(ok, z, 1.0))
-            return X, ok
+            return self.depth_points(depth_m, px, rate)
         if right is None or left is None or self.rig is None:
             raise EstimationError("this VO method needs depth or a stereo pair in every frame")
         keep_far = self.opts.far_points not in (None, "drop")
@@ -169,6 +197,8 @@ class CameraGeometry:
         if keep_far:
             zmax = max(zmax, self.rig.fx * self.rig.baseline_m / _FAR_MIN_DISPARITY_PX)
         X, ok2 = triangulate(px, disp + np.float32(self.disparity_offset_px), self.rig, self.opts.min_depth_m, zmax)
+        if self.shutter is not None and rate is not None and len(X):
+            X = self.shutter.points(X, px[:, 1], rate)
         return X, ok & ok2
 
     def _row_disparity(
@@ -344,6 +374,7 @@ class FrontEnd:
         self.kf_gray: U8 | None = None
         self.kf_right: U8 | None = None
         self.kf_depth: F32 | None = None
+        self.kf_rate: CameraRate | None = None
         self.next_id = 0
         self._kf_orb: tuple[Features, F64, Bool] | None = None
 
@@ -388,13 +419,15 @@ class FrontEnd:
         T_world_cam: F64,
         keep_X_cur: F64 | None,
         remeasure: bool = True,
+        rate: CameraRate | None = None,
     ) -> None:
         """Turn the current frame (at ``T_world_cam``) into the keyframe: keep the tracked points
         (``trk_px``, with their fused 3D estimate ``keep_X_cur`` in this frame), add grid corners,
         measure their 3D points.
 
         With ``remeasure`` the kept points are measured again here and fused, else (this frame's
-        measurement was already fused) only the new corners are measured.
+        measurement was already fused) only the new corners are measured. ``rate``: the camera's
+        at this frame (a rolling shutter), kept as ``kf_rate``.
         """
         keep_px, keep_ids, keep_w = self.trk_px, self.kf_ids, self.kf_w
         n_keep = len(keep_px) if keep_X_cur is not None else 0
@@ -415,11 +448,11 @@ class FrontEnd:
             init: F32 | float = (
                 np.concatenate([d_keep, np.full(len(new_px), fb_init, np.float32)]) if len(d_keep) else fb_init
             )
-            X_m, ok_m = self.geo.points_3d(px_m, right_gray, gray, depth_m, init)
+            X_m, ok_m = self.geo.points_3d(px_m, right_gray, gray, depth_m, init, rate=rate)
             X_k, ok_k = X_m[:n_keep], ok_m[:n_keep]
             X_n, ok_n = X_m[n_keep:], ok_m[n_keep:]
         else:
-            X_n, ok_n = self.geo.points_3d(new_px, right_gray, gray, depth_m, fb_init)
+            X_n, ok_n = self.geo.points_3d(new_px, right_gray, gray, depth_m, fb_init, rate=rate)
             X_k, ok_k = np.empty((n_keep, 3)), np.zeros(n_keep, dtype=bool)
         # Kept points: fuse the fresh measurement (if any) with the carried estimate.
         if keep_X_cur is not None and n_keep:
@@ -442,6 +475,7 @@ class FrontEnd:
         self.kf_gray = gray
         self.kf_right = right_gray
         self.kf_depth = depth_m
+        self.kf_rate = rate
         self._kf_orb = None
 
     def snapshot(self) -> StoredKeyframe:
@@ -456,13 +490,14 @@ class FrontEnd:
             self.kf_gray,
             self.kf_right,
             self.kf_depth,
+            self.kf_rate,
         )
 
-    def restore(self, kf: StoredKeyframe, gray: U8, T_world_cam: F64) -> bool:
+    def restore(self, kf: StoredKeyframe, gray: U8, T_world_cam: F64, rate: CameraRate | None = None) -> bool:
         """Return to a kept keyframe: track its points from its image into ``gray`` (LK from their
         projection at ``T_world_cam``, forward-backward checked) and make it the keyframe if at
         least the keyframe policy's share and count of them are tracked and agree on one pose
-        (the others are dropped); else change nothing."""
+        (the others are dropped); else change nothing. ``rate``: the camera's at ``gray``."""
         g = self.geo
         T_cur_kf = invert(T_world_cam) @ kf.T_world_kf
         guess, vis = g.project(T_cur_kf, kf.X)
@@ -477,7 +512,7 @@ class FrontEnd:
         sel = np.flatnonzero(ok)
         check = pnp(
             kf.X[sel],
-            g.undistort(px[sel]),
+            g.undistort(px[sel], rate),
             g.K,
             method="iterative",
             reproj_px=self.opts.reproj_px,
@@ -492,7 +527,7 @@ class FrontEnd:
         self.trk_px = np.ascontiguousarray(px[ok])
         self.kf_n0 = len(kf.X)
         self.T_world_kf = kf.T_world_kf.copy()
-        self.kf_gray, self.kf_right, self.kf_depth = kf.gray, kf.right, kf.depth
+        self.kf_gray, self.kf_right, self.kf_depth, self.kf_rate = kf.gray, kf.right, kf.depth, kf.rate
         self._kf_orb = None
         return True
 
@@ -526,18 +561,18 @@ class FrontEnd:
                 med = float(np.median(fb / self.kf_X[:, 2])) if len(self.kf_X) else 0.0
                 init = np.where(np.isfinite(init), init, med).astype(np.float32)
                 # Far points too: recovering the pose matters more here than their depth noise.
-                X, ok = g.points_3d(f.pts_px, self.kf_right, self.kf_gray, None, init, self.opts.max_depth_m)
+                X, ok = g.points_3d(
+                    f.pts_px, self.kf_right, self.kf_gray, None, init, self.opts.max_depth_m, rate=self.kf_rate
+                )
             else:
                 assert self.kf_depth is not None
-                z = g.depth_at(self.kf_depth, f.pts_px)
-                ok = np.isfinite(z)
-                X = g.backproject(g.undistort(f.pts_px), np.where(ok, z, 1.0))
+                X, ok = g.depth_points(self.kf_depth, f.pts_px, self.kf_rate)
             self._kf_orb = (f, X, ok)
         return self._kf_orb
 
-    def orb_fallback(self, gray: U8, guess: F64) -> Motion | None:
+    def orb_fallback(self, gray: U8, guess: F64, rate: CameraRate | None = None) -> Motion | None:
         """The keyframe-to-current motion from ORB matches against the keyframe (when tracking
-        failed), or None."""
+        failed), or None; ``rate``: the camera's predicted rate at ``gray``."""
         f_kf, X_kf, ok_kf = self._keyframe_orb()
         f_cur = self.orb.extract(gray)
         ia, ib = match_descriptors(f_kf, f_cur, ratio=0.8, mutual=True)
@@ -549,7 +584,7 @@ class FrontEnd:
             return None
         m = pnp(
             X_kf[ia],
-            self.geo.undistort(f_cur.pts_px[ib]),
+            self.geo.undistort(f_cur.pts_px[ib], rate),
             self.geo.K,
             method=o.pnp_method,
             reproj_px=o.reproj_px * 1.5,

@@ -70,6 +70,7 @@ from estimation.motion import Motion, invert, median
 from estimation.polish import PosePolisher
 from estimation.pose_track import PoseTrack
 from estimation.revisit import KeyframeStore, StoredKeyframe
+from estimation.rolling_shutter import CameraRate
 from estimation.stereo_offset import DisparityOffset
 from estimation.vo_options import (
     EssentialOptions,
@@ -108,6 +109,10 @@ logger = logging.getLogger(__name__)
 
 F64 = npt.NDArray[np.float64]
 F32 = npt.NDArray[np.float32]
+
+_RATE_REDO_PX = 0.1
+"""A rolling shutter: the motion is measured again with its own rate when that rate moves the
+rows' pixels by more than this from the predicted rate's (px)."""
 
 
 # ---------------------------------------------------------------------------------------------
@@ -265,8 +270,9 @@ class VisualOdometry:
         depth_m: F32 | None,
         X_cur: F64 | None,
         remeasure: bool = True,
+        rate: CameraRate | None = None,
     ) -> None:
-        self.front.make_keyframe(gray, right_gray, depth_m, self.pose.T_world_cam, X_cur, remeasure)
+        self.front.make_keyframe(gray, right_gray, depth_m, self.pose.T_world_cam, X_cur, remeasure, rate)
         if self.offset is not None and self.offset.waiting:
             # The first keyframe (or one after a gap): its own disparities start the next pair.
             self._observe_offset(self.front.kf_ids, self.front.kf_X, None)
@@ -277,16 +283,16 @@ class VisualOdometry:
             self.store.add(self._stored)
         if self.ba is not None:
             f = self.front
-            self.ba.add_keyframe(f.T_world_kf, f.kf_ids, self.geo.undistort(f.kf_px), f.kf_X)
+            self.ba.add_keyframe(f.T_world_kf, f.kf_ids, self.geo.undistort(f.kf_px, f.kf_rate, f.kf_X[:, 2]), f.kf_X)
 
-    def _revisit(self, gray: npt.NDArray[np.uint8]) -> bool:
+    def _revisit(self, gray: npt.NDArray[np.uint8], rate: CameraRate | None) -> bool:
         """Instead of a new keyframe, return to a kept one the camera sees again, if any
         (``VoOptions.revisit_keyframes``); the next frames are measured against it."""
         if self.store is None:
             return False
         T_world_cam = self.pose.T_world_cam
         kf = self.store.best(T_world_cam, self.geo, self.opts.keyframes, self._stored)
-        if kf is None or not self.front.restore(kf, gray, T_world_cam):
+        if kf is None or not self.front.restore(kf, gray, T_world_cam, rate):
             return False
         self._stored = kf
         self.T_prev_kf = invert(T_world_cam) @ kf.T_world_kf
@@ -345,28 +351,37 @@ class VisualOdometry:
 
         motion: Motion | None = None
         self.polisher.meas = None
+        shutter = self.geo.shutter
+        rate = CameraRate.from_step(T_pred_cur_prev, dt_s) if shutter is not None and has_prior else None
         if len(idx) >= o.min_inliers:
             assert self._estimator is not None
-            px_cur = px[idx]
-            tracks = Tracks(
-                front.kf_X[idx],
-                front.kf_px[idx],
-                px_cur,
-                self.geo.undistort(px_cur),
-                T_pred_cur_kf,
-                has_prior,
-                gray,
-                right_gray,
-                depth_m,
-                disparity_variance(front.kf_w[idx], front.kf_X[idx, 2]) if o.point_uncertainty else None,
-            )
-            m = self._estimator.estimate(tracks)
+            var_kf = disparity_variance(front.kf_w[idx], front.kf_X[idx, 2]) if o.point_uncertainty else None
+
+            def tracks(T_guess_cur_kf: F64, prior: bool, rate_cur: CameraRate | None) -> Tracks:
+                px_cur = px[idx]
+                X_kf = front.kf_X[idx]
+                z_cur = X_kf @ T_guess_cur_kf[2, :3] + T_guess_cur_kf[2, 3] if rate_cur is not None else None
+                und_cur = self.geo.undistort(px_cur, rate_cur, z_cur)
+                return Tracks(
+                    X_kf, front.kf_px[idx], px_cur, und_cur, T_guess_cur_kf, prior, gray, right_gray, depth_m,
+                    var_kf, rate_cur, front.kf_rate,
+                )  # fmt: skip
+
+            m = self._estimator.estimate(tracks(T_pred_cur_kf, has_prior, rate))
+            if shutter is not None and m.ok:
+                # A rolling shutter: the rate this motion implies replaces the prediction's, and the
+                # motion is measured again with it when that moves the rows' pixels.
+                rate_m = CameraRate.from_step(m.T_cur_ref @ invert(self.T_prev_kf), dt_s)
+                if rate is None or shutter.max_shift_px(rate_m.minus(rate)) > _RATE_REDO_PX:
+                    m2 = self._estimator.estimate(tracks(m.T_cur_ref, True, rate_m))
+                    if m2.ok:
+                        m = m2
             if m.ok:
                 motion = m
         quality = Quality.GOOD
         fallback = False
         if motion is None and o.orb_fallback:
-            motion = front.orb_fallback(gray, T_pred_cur_kf)
+            motion = front.orb_fallback(gray, T_pred_cur_kf, rate)
             fallback = motion is not None
             quality = Quality.FALLBACK
         T_cur_kf = T_pred_cur_kf
@@ -392,6 +407,8 @@ class VisualOdometry:
         T_cur_prev = T_cur_kf @ invert(self.T_prev_kf)
         if quality is not Quality.PREDICTED:
             pose.measured(T_cur_prev, dt_s)
+        if shutter is not None and dt_s > 0:
+            rate = CameraRate.from_step(T_cur_prev, dt_s)
         pose.T_world_cam = front.T_world_kf @ invert(T_cur_kf)
         self.T_prev_kf = T_cur_kf
         self.kf_since += 1
@@ -420,13 +437,13 @@ class VisualOdometry:
         depth = median(z_kf) if len(z_kf) else float("inf")
         decision = o.keyframes.decide(parallax, len(front.trk_px), front.kf_n0, T_cur_kf, self.kf_since, depth)
         is_kf = decision.new_keyframe or fallback
-        if is_kf and not fallback and self._revisit(gray):
+        if is_kf and not fallback and self._revisit(gray, rate):
             logger.debug("frame %d: back to a kept keyframe (%s)", self.index, decision.reason)
             is_kf = False
             timer.lap("keyframe")
         elif is_kf:
             X_cur = front.kf_X @ T_cur_kf[:3, :3].T + T_cur_kf[:3, 3]
-            self._new_keyframe(gray, right_gray, depth_m, X_cur, remeasure=not fused)
+            self._new_keyframe(gray, right_gray, depth_m, X_cur, remeasure=not fused, rate=rate)
             logger.debug(
                 "frame %d: keyframe (%s), %d points", self.index, decision.reason or "fallback", len(front.kf_X)
             )

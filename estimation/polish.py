@@ -17,6 +17,7 @@ import numpy.typing as npt
 from estimation.frontend import CameraGeometry
 from estimation.motion import Motion, make_T
 from estimation.pnp import refine_pose
+from estimation.rolling_shutter import CameraRate
 from estimation.stereo import sparse_disparity
 from estimation.vo_options import VoOptions
 
@@ -64,6 +65,7 @@ class PosePolisher:
         gate_px: float,
         min_fraction: float,
         var_kf: F64 | None = None,
+        rate: CameraRate | None = None,
     ) -> Motion | None:
         """PnP without RANSAC when the constant-velocity prediction already explains the tracks.
 
@@ -90,7 +92,15 @@ class PosePolisher:
         if np.count_nonzero(mask) < need:
             return None
         T = self.refine(
-            T, X_kf[mask], px_cur[mask], und_cur[mask], depth_m, gray, right_gray, var_kf=_subset(var_kf, mask)
+            T,
+            X_kf[mask],
+            px_cur[mask],
+            und_cur[mask],
+            depth_m,
+            gray,
+            right_gray,
+            var_kf=_subset(var_kf, mask),
+            rate=rate,
         )
         self.remap(mask)
         return Motion(T, mask, True)
@@ -106,6 +116,7 @@ class PosePolisher:
         right_gray: U8 | None,
         z_cur: F64 | None = None,
         var_kf: F64 | None = None,
+        rate: CameraRate | None = None,
     ) -> Motion:
         """The same polish as PnP's for a motion found otherwise (5-point, Kabsch): reprojection
         of the keyframe points plus this frame's depth (``refine_with_depth``), inliers
@@ -125,6 +136,7 @@ class PosePolisher:
             right_gray,
             _subset(z_cur, mask),
             _subset(var_kf, mask),
+            rate,
         )
         refined = mask & (self.geo.reproj_err2(T, X_kf, und_cur) < o.reproj_px**2)
         if np.count_nonzero(refined) < o.min_inliers:
@@ -148,10 +160,12 @@ class PosePolisher:
         right_gray: U8 | None,
         z: F64 | None = None,
         var_kf: F64 | None = None,
+        rate: CameraRate | None = None,
     ) -> F64:
         """Polish a pose with the current frame's own depth (disparity residuals); ``z``: the
-        depth at ``px`` if already looked up (depth lookup is per pixel); ``var_kf``: the points'
-        keyframe disparity variance (``Tracks.var_kf``; None: exact points). Sets ``meas``."""
+        depth at ``px`` (at the frame's stamp) if already looked up; ``var_kf``: the points'
+        keyframe disparity variance (``Tracks.var_kf``; None: exact points); ``rate``: the camera's
+        (a rolling shutter: the depths are moved to the frame's stamp). Sets ``meas``."""
         geo = self.geo
         huber = self.opts.polish_huber_px
         if self.stereo:
@@ -182,7 +196,8 @@ class PosePolisher:
         elif depth_m is not None:
             fb = geo.intr.fx * geo.virtual_baseline_m
             if z is None:
-                z = geo.depth_at(depth_m, px)
+                X, ok = geo.depth_points(depth_m, px, rate)
+                z = np.where(ok, X[:, 2], np.nan)
             d = fb / z
         else:
             return refine_pose(T, X_kf, und, geo.K, huber_px=huber)

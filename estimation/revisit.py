@@ -25,6 +25,7 @@ from estimation.motion import invert, median
 
 if TYPE_CHECKING:
     from estimation.frontend import CameraGeometry
+    from estimation.rolling_shutter import CameraRate
 
 __all__ = ["KeyframeStore", "StoredKeyframe"]
 
@@ -37,7 +38,8 @@ U8 = npt.NDArray[np.uint8]
 @dataclass(frozen=True, slots=True, eq=False)
 class StoredKeyframe:
     """A keyframe as it was made: its pose, points (keyframe camera frame, m), their pixels,
-    ids and fusion weights, and its images (right or depth None when absent)."""
+    ids and fusion weights, its images (right or depth None when absent) and the camera's rate
+    then (a rolling shutter)."""
 
     T_world_kf: F64
     X: F64
@@ -47,6 +49,7 @@ class StoredKeyframe:
     gray: U8
     right: U8 | None
     depth: F32 | None
+    rate: CameraRate | None = None
 
 
 class KeyframeStore:

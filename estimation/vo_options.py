@@ -9,6 +9,7 @@ Each option is one line here; how each default was chosen is in docs/estimation-
 from __future__ import annotations
 
 import enum
+import math
 from dataclasses import dataclass, field, replace
 from typing import TypeVar
 
@@ -255,6 +256,8 @@ class VoOptions:
         ba_window: local bundle adjustment over this many keyframes (0: off).
         revisit_keyframes: keep this many past keyframes and return to one the camera sees again
             instead of making a new keyframe (``estimation.revisit``; 0: off).
+        readout_s: rolling-shutter readout (first row to last, s) whose row timing is undone
+            (``estimation.rolling_shutter``); None: the camera's ``CameraIntrinsics.readout_s``.
         seed: RANSAC random seed (repeatable runs).
     """
 
@@ -296,6 +299,7 @@ class VoOptions:
     keyframes: KeyframePolicy = field(default_factory=KeyframePolicy)
     ba_window: int = 0
     revisit_keyframes: int = 0
+    readout_s: float | None = None
     seed: int = 0
 
     def for_camera(self, focal_px: float, width_px: int) -> VoOptions:
@@ -396,6 +400,10 @@ class VoOptions:
             raise EstimationError(
                 f"VoOptions.depth_sigma_per_m2={self.depth_sigma_per_m2}, track_sigma_px={self.track_sigma_px}; "
                 "use a depth noise >= 0 per m^2 (0: fixed weight; Kinect v1 1.425e-3) and a pixel noise > 0"
+            )
+        if self.readout_s is not None and not (math.isfinite(self.readout_s) and self.readout_s >= 0):
+            raise EstimationError(
+                f"VoOptions.readout_s is {self.readout_s}; use the readout in seconds (0: global shutter)"
             )
         if self.revisit_keyframes < 0:
             raise EstimationError(f"VoOptions.revisit_keyframes is {self.revisit_keyframes}; use >= 0 (0: off)")

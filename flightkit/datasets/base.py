@@ -62,6 +62,11 @@ class SequenceKind:
     MCAP = "mcap"
 
 
+KINECT_READOUT_S = 0.020
+"""Rolling-shutter readout of the Kinect v1 colour camera (and the PrimeSense-design Xtion), s:
+measured on TUM fr1 and checked on 7-Scenes (docs/estimation.md, "Rolling shutter")."""
+
+
 @dataclass(frozen=True, slots=True)
 class CameraIntrinsics:
     """Pinhole intrinsics of one camera, in pixels.
@@ -72,6 +77,7 @@ class CameraIntrinsics:
         width, height: image size, px.
         dist: OpenCV distortion coefficients ``(k1, k2, p1, p2[, k3, ...])``; empty when the
             images are undistorted (rectified datasets, rectified EuRoC).
+        readout_s: rolling-shutter readout, first row to last row, s; 0 for a global shutter.
     """
 
     fx: float
@@ -81,6 +87,7 @@ class CameraIntrinsics:
     width: int
     height: int
     dist: tuple[float, ...] = ()
+    readout_s: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("fx", "fy", "cx", "cy"):
@@ -95,6 +102,10 @@ class CameraIntrinsics:
         object.__setattr__(self, "width", int(self.width))
         object.__setattr__(self, "height", int(self.height))
         object.__setattr__(self, "dist", tuple(float(d) for d in self.dist))
+        readout = float(self.readout_s)
+        if not (math.isfinite(readout) and readout >= 0.0):
+            raise DatasetError(f"rolling-shutter readout_s is {readout}; it must be 0 (global shutter) or more")
+        object.__setattr__(self, "readout_s", readout)
 
     @property
     def K(self) -> npt.NDArray[np.float64]:  # noqa: N802 - the usual name of the matrix
@@ -130,6 +141,7 @@ class CameraIntrinsics:
             round(self.width * factor),
             round(self.height * factor),
             self.dist,
+            self.readout_s,
         )
 
     def to_dict(self) -> dict[str, object]:
@@ -141,6 +153,7 @@ class CameraIntrinsics:
             "width": self.width,
             "height": self.height,
             "dist": list(self.dist),
+            "readout_s": self.readout_s,
         }
 
 

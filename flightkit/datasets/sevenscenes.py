@@ -15,13 +15,14 @@ depth-camera intrinsics (585/585/320/240), which is what the dataset provides.
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
 
-from flightkit.datasets.base import CameraIntrinsics, SequenceKind
+from flightkit.datasets.base import KINECT_READOUT_S, CameraIntrinsics, SequenceKind
 from flightkit.datasets.files import FileSequence, FrameFiles, require
 from flightkit.datasets.trajectory import Trajectory
 from flightkit.errors import DatasetError
@@ -92,7 +93,7 @@ def open_sevenscenes(path: Path, intrinsics: CameraIntrinsics | None = None) -> 
         kind=SequenceKind.SEVEN_SCENES,
         path=path,
         files=files,
-        intrinsics=K,
+        intrinsics=dataclasses.replace(K, readout_s=KINECT_READOUT_S),  # the Kinect v1's colour camera
         color=True,
         depth_intrinsics=K,
         depth_scale_m=1e-3,

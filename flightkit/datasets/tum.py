@@ -41,7 +41,7 @@ import numpy as np
 import numpy.typing as npt
 
 from flightkit.bus.image_msgs import CameraInfo
-from flightkit.datasets.base import CameraIntrinsics, SequenceKind
+from flightkit.datasets.base import KINECT_READOUT_S, CameraIntrinsics, SequenceKind
 from flightkit.datasets.files import FileSequence, FrameFiles, poses_at, require
 from flightkit.datasets.trajectory import Trajectory, associate, parse_stamp_ns, read_tum
 from flightkit.errors import DatasetError
@@ -68,7 +68,8 @@ TUM_DEPTH_FACTOR = 5000.0
 TUM_DEPTH_SCALE_M = 1.0 / TUM_DEPTH_FACTOR
 _ASSOC_MAX_NS = 20_000_000
 
-# TUM's published colour-camera calibration (the Kinects are 640x480).
+# TUM's published colour-camera calibration (the Kinects are 640x480) and the colour camera's
+# rolling-shutter readout (KINECT_READOUT_S).
 TUM_INTRINSICS: dict[str, CameraIntrinsics] = {
     "freiburg1": CameraIntrinsics(
         517.306408,
@@ -78,6 +79,7 @@ TUM_INTRINSICS: dict[str, CameraIntrinsics] = {
         640,
         480,
         (0.262383, -0.953104, -0.005358, 0.002628, 1.163314),
+        KINECT_READOUT_S,
     ),
     "freiburg2": CameraIntrinsics(
         520.908620,
@@ -87,8 +89,9 @@ TUM_INTRINSICS: dict[str, CameraIntrinsics] = {
         640,
         480,
         (0.231222, -0.784899, -0.003257, -0.000105, 0.917205),
+        KINECT_READOUT_S,
     ),
-    "freiburg3": CameraIntrinsics(535.4, 539.2, 320.1, 247.6, 640, 480),
+    "freiburg3": CameraIntrinsics(535.4, 539.2, 320.1, 247.6, 640, 480, (), KINECT_READOUT_S),
     "default": CameraIntrinsics(525.0, 525.0, 319.5, 239.5, 640, 480),
 }
 
@@ -334,7 +337,8 @@ def write_tum_camera_yaml(path: Path, info: CameraInfo, right: CameraInfo | None
 
 
 def read_tum_camera_yaml(folder: str | Path) -> CameraIntrinsics:
-    """The intrinsics in a TUM folder's ``camera.yaml`` (as :func:`write_tum_camera_yaml` writes it).
+    """The intrinsics in a TUM folder's ``camera.yaml`` (as :func:`write_tum_camera_yaml` writes it;
+    an optional ``Camera.readout_s`` gives a rolling shutter's readout, s).
 
     Raises:
         DatasetError: the file is missing or incomplete.
@@ -346,7 +350,7 @@ def read_tum_camera_yaml(folder: str | Path) -> CameraIntrinsics:
     try:
         vals = {
             k: fs.getNode(f"Camera.{k}")
-            for k in ("fx", "fy", "cx", "cy", "width", "height", "k1", "k2", "p1", "p2", "k3")
+            for k in ("fx", "fy", "cx", "cy", "width", "height", "k1", "k2", "p1", "p2", "k3", "readout_s")
         }
         if any(vals[k].empty() for k in ("fx", "fy", "cx", "cy", "width", "height")):
             raise DatasetError(f"{path} lacks Camera.fx/fy/cx/cy/width/height; re-export the folder")
@@ -359,6 +363,7 @@ def read_tum_camera_yaml(folder: str | Path) -> CameraIntrinsics:
             int(vals["width"].real()),
             int(vals["height"].real()),
             dist if any(dist) else (),
+            0.0 if vals["readout_s"].empty() else vals["readout_s"].real(),
         )
     finally:
         fs.release()

@@ -7,6 +7,7 @@ Calibration file: ``<video>.json`` / ``<video>.yaml`` beside the video (same ste
       "fx": 615.2, "fy": 615.0, "cx": 320.4, "cy": 240.1,
       "width": 640, "height": 480,
       "dist": [0.1, -0.2, 0.0, 0.0, 0.05],          # OpenCV k1 k2 p1 p2 [k3 ...], optional
+      "readout_s": 0.02,                             # optional: rolling-shutter readout, s
       "fps": 30.0,                                   # optional: overrides the container's rate
       "start_stamp_ns": 1700000000000000000,         # optional: stamp of frame 0 (default 0)
       "groundtruth": "gt_tum.txt"                    # optional: TUM file of T_world_camera
@@ -65,7 +66,7 @@ def _yaml_calibration(path: Path) -> dict[str, Any]:
                 out["dist"] = [float(v) for v in dist.mat().reshape(-1)]
             out["width"] = fs.getNode("image_width").real()
             out["height"] = fs.getNode("image_height").real()
-        for key in ("fx", "fy", "cx", "cy", "width", "height", "fps", "start_stamp_ns"):
+        for key in ("fx", "fy", "cx", "cy", "width", "height", "fps", "start_stamp_ns", "readout_s"):
             node = fs.getNode(key)
             if not node.empty():
                 out[key] = node.real()
@@ -122,6 +123,7 @@ class VideoSequence:
             int(calib["width"]),
             int(calib["height"]),
             tuple(calib.get("dist", ())),
+            float(calib.get("readout_s", 0.0)),
         )
         cap = self._open()
         try:

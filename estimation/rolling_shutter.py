@@ -1,0 +1,99 @@
+"""Rolling-shutter row timing: each image row is exposed a little later than the one above it,
+so a moving camera sees every row from another pose. These functions move a measurement from
+its row's time to the frame's stamp (taken as mid-readout), to first order in the camera's
+motion rate, before any geometry uses it.
+
+The model: row ``v`` is exposed at ``stamp + (v - (H - 1) / 2) * readout_s / H``, and over that
+short time the camera turns and moves at a constant rate (:class:`CameraRate`, in its own
+OpenCV frame). A static point at ``X_row`` in the camera at the row's time is at
+``X_mid = X_row + dt * (omega x X_row + v)`` in the camera at the stamp.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+__all__ = ["CameraRate", "RollingShutter"]
+
+F64 = npt.NDArray[np.float64]
+Rows = npt.NDArray[np.floating[Any]]
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class CameraRate:
+    """The camera's motion rate at a frame, in its own (OpenCV) frame.
+
+    Attributes:
+        omega_rad_s: (3,) angular rate, rad/s.
+        velocity_m_s: (3,) velocity, m/s.
+    """
+
+    omega_rad_s: F64
+    velocity_m_s: F64
+
+    def minus(self, other: CameraRate) -> CameraRate:
+        """The difference of two rates."""
+        return CameraRate(self.omega_rad_s - other.omega_rad_s, self.velocity_m_s - other.velocity_m_s)
+
+    @staticmethod
+    def from_step(T_cur_prev: F64, dt_s: float) -> CameraRate:
+        """The mean rate over a step ``T_cur_prev`` (prev-camera to cur-camera) of ``dt_s``."""
+        rvec, _ = cv2.Rodrigues(np.ascontiguousarray(T_cur_prev[:3, :3].T))
+        omega = np.asarray(rvec, dtype=np.float64).reshape(3) / dt_s
+        return CameraRate(omega, np.asarray(-T_cur_prev[:3, 3] / dt_s, dtype=np.float64))
+
+
+class RollingShutter:
+    """Row timing of one rolling-shutter camera (pixels are undistorted ones of ``K``).
+
+    Args:
+        readout_s: time from the first row's exposure to the last's, s (> 0).
+        height_px: image rows.
+        fx, fy, cx, cy: the pinhole model of the undistorted pixels.
+    """
+
+    def __init__(self, readout_s: float, height_px: int, fx: float, fy: float, cx: float, cy: float) -> None:
+        self.readout_s = float(readout_s)
+        self.height_px = int(height_px)
+        self.fx, self.fy, self.cx, self.cy = fx, fy, cx, cy
+
+    def row_dt_s(self, rows_px: Rows) -> F64:
+        """Each row's exposure time minus the stamp's, s."""
+        return (np.asarray(rows_px, dtype=np.float64) - 0.5 * (self.height_px - 1)) * (self.readout_s / self.height_px)
+
+    def max_shift_px(self, rate: CameraRate) -> float:
+        """About the largest pixel shift the rate's rotation makes between the stamp and the
+        first or last row (to tell whether a change of rate matters)."""
+        w = rate.omega_rad_s
+        f = max(self.fx, self.fy)
+        return 0.5 * self.readout_s * f * float(np.hypot(np.hypot(w[0], w[1]), 0.5 * w[2]))
+
+    def points(self, X_row: F64, rows_px: Rows, rate: CameraRate) -> F64:
+        """3D points measured at their rows' times (camera frame, m), in the camera at the stamp."""
+        dt = self.row_dt_s(rows_px)[:, None]
+        return X_row + dt * (np.cross(rate.omega_rad_s, X_row) + rate.velocity_m_s)
+
+    def pixels(self, und_px: F64, rows_px: Rows, rate: CameraRate, z_m: F64 | None = None) -> F64:
+        """Undistorted pixels seen at their rows' times, where the camera at the stamp sees the
+        same points. ``z_m``: the points' depths when known (for the velocity's part), else
+        only the rotation is undone."""
+        n = len(und_px)
+        if n == 0:
+            return np.asarray(und_px, dtype=np.float64)
+        b = np.empty((n, 3))
+        b[:, 0] = (und_px[:, 0] - self.cx) / self.fx
+        b[:, 1] = (und_px[:, 1] - self.cy) / self.fy
+        b[:, 2] = 1.0
+        d = np.cross(rate.omega_rad_s, b)
+        if z_m is not None:
+            d += rate.velocity_m_s[None, :] / np.asarray(z_m, dtype=np.float64)[:, None]
+        b += self.row_dt_s(rows_px)[:, None] * d
+        out = np.empty((n, 2))
+        out[:, 0] = self.fx * b[:, 0] / b[:, 2] + self.cx
+        out[:, 1] = self.fy * b[:, 1] / b[:, 2] + self.cy
+        return out
