@@ -24,8 +24,8 @@ from typing import Protocol
 import numpy as np
 import numpy.typing as npt
 
+from estimation.camera_geometry import CameraGeometry
 from estimation.essential import essential_from_prior, essential_metric
-from estimation.frontend import CameraGeometry
 from estimation.motion import Motion, median
 from estimation.pnp import pnp, refine_pose
 from estimation.polish import PosePolisher

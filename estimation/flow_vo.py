@@ -19,9 +19,9 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from estimation.camera_geometry import CameraGeometry
 from estimation.features import DescriptorExtractor, shi_tomasi
 from estimation.flow import integrate_velocity, polish_motion, stereo_altitude_m, track_klt, velocity_ransac
-from estimation.frontend import CameraGeometry
 from estimation.motion import invert
 from estimation.pose_track import PoseTrack
 from estimation.vo_options import FlowOptions, VoOptions

@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from estimation.frontend import CameraGeometry
+from estimation.camera_geometry import CameraGeometry
 from estimation.motion import Motion, make_T
 from estimation.pnp import refine_pose
 from estimation.rolling_shutter import CameraRate
@@ -33,7 +33,7 @@ class PosePolisher:
     """Pose refinement on reprojection plus the current frame's depth, for one VO run.
 
     Args:
-        geometry: the run's camera (:class:`~estimation.frontend.CameraGeometry`).
+        geometry: the run's camera (:class:`~estimation.camera_geometry.CameraGeometry`).
         options: the shared :class:`VoOptions`.
         stereo: the depth is measured by sparse stereo (else looked up in depth images).
     """

@@ -24,7 +24,7 @@ from estimation.keyframes import KeyframePolicy
 from estimation.motion import invert, median
 
 if TYPE_CHECKING:
-    from estimation.frontend import CameraGeometry
+    from estimation.camera_geometry import CameraGeometry
     from estimation.rolling_shutter import CameraRate
 
 __all__ = ["KeyframeStore", "StoredKeyframe"]

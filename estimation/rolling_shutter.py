@@ -75,8 +75,14 @@ class RollingShutter:
 
     def points(self, X_row: F64, rows_px: Rows, rate: CameraRate) -> F64:
         """3D points measured at their rows' times (camera frame, m), in the camera at the stamp."""
-        dt = self.row_dt_s(rows_px)[:, None]
-        return X_row + dt * (np.cross(rate.omega_rad_s, X_row) + rate.velocity_m_s)
+        dt = self.row_dt_s(rows_px)
+        w, v = rate.omega_rad_s, rate.velocity_m_s
+        x, y, z = X_row[:, 0], X_row[:, 1], X_row[:, 2]
+        out = np.empty_like(X_row, dtype=np.float64)
+        out[:, 0] = x + dt * (w[1] * z - w[2] * y + v[0])
+        out[:, 1] = y + dt * (w[2] * x - w[0] * z + v[1])
+        out[:, 2] = z + dt * (w[0] * y - w[1] * x + v[2])
+        return out
 
     def pixels(self, und_px: F64, rows_px: Rows, rate: CameraRate, z_m: F64 | None = None) -> F64:
         """Undistorted pixels seen at their rows' times, where the camera at the stamp sees the
@@ -85,15 +91,21 @@ class RollingShutter:
         n = len(und_px)
         if n == 0:
             return np.asarray(und_px, dtype=np.float64)
-        b = np.empty((n, 3))
-        b[:, 0] = (und_px[:, 0] - self.cx) / self.fx
-        b[:, 1] = (und_px[:, 1] - self.cy) / self.fy
-        b[:, 2] = 1.0
-        d = np.cross(rate.omega_rad_s, b)
+        w, v = rate.omega_rad_s, rate.velocity_m_s
+        x = (und_px[:, 0] - self.cx) / self.fx
+        y = (und_px[:, 1] - self.cy) / self.fy
+        dt = self.row_dt_s(rows_px)
+        # b = (x, y, 1) moved by dt * (w x b + v / z)
+        bx = w[1] - w[2] * y
+        by = w[2] * x - w[0]
+        bz = w[0] * y - w[1] * x
         if z_m is not None:
-            d += rate.velocity_m_s[None, :] / np.asarray(z_m, dtype=np.float64)[:, None]
-        b += self.row_dt_s(rows_px)[:, None] * d
+            inv_z = 1.0 / np.asarray(z_m, dtype=np.float64)
+            bx += v[0] * inv_z
+            by += v[1] * inv_z
+            bz += v[2] * inv_z
+        inv_w = 1.0 / (1.0 + dt * bz)
         out = np.empty((n, 2))
-        out[:, 0] = self.fx * b[:, 0] / b[:, 2] + self.cx
-        out[:, 1] = self.fy * b[:, 1] / b[:, 2] + self.cy
+        out[:, 0] = self.fx * (x + dt * bx) * inv_w + self.cx
+        out[:, 1] = self.fy * (y + dt * by) * inv_w + self.cy
         return out

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from estimation.frontend import CameraGeometry
+from estimation.camera_geometry import CameraGeometry
 from estimation.motion import make_T
 from estimation.pnp import refine_pose
 from estimation.vo_options import VoOptions

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from estimation.frontend import depth_weight, disparity_variance
+from estimation.camera_geometry import depth_weight, disparity_variance
 from estimation.motion import make_T
 from estimation.pnp import refine_pose
 from flightkit.datasets.base import CameraIntrinsics

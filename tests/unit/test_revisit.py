@@ -6,7 +6,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from estimation.frontend import CameraGeometry, FrontEnd
+from estimation.camera_geometry import CameraGeometry
+from estimation.frontend import FrontEnd
 from estimation.motion import make_T
 from estimation.revisit import KeyframeStore, StoredKeyframe
 from estimation.vo_options import VoOptions

@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
+from estimation.camera_geometry import CameraGeometry
 from estimation.features import GridDetector
-from estimation.frontend import CameraGeometry
 from estimation.stereo import row_disparity, sparse_disparity
 from estimation.vo_options import VoOptions
 from flightkit.datasets.base import CameraIntrinsics
