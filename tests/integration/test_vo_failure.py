@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import estimation.pipeline as pipeline
+import estimation.odometry as odometry
 from estimation.pipeline import FlowOptions, Quality, VoOptions, run_vo
 from flightkit.cli.main import main
 from flightkit.datasets.registry import open_sequence
@@ -49,7 +49,7 @@ def test_flow_on_a_forward_stereo_camera_estimates_every_frame() -> None:
 def test_vo_run_exits_1_with_one_line_when_most_frames_fail(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    monkeypatch.setattr(pipeline, "VoOptions", lambda: NO_ALTITUDE)
+    monkeypatch.setattr(odometry, "VoOptions", lambda: NO_ALTITUDE)
     out = tmp_path / "flow.txt"
     rc = main(["vo", "run", str(KITTI), "--method", "flow", "--size", "320x240", "--stop", "8", "-o", str(out)])
     err = capsys.readouterr().err
