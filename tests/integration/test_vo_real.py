@@ -188,18 +188,23 @@ def test_kitti06_native_stereo_against_the_plain_stereo_pipeline() -> None:
 
 def test_tum_rpy_native_rgbd_against_the_plain_rgbd_pipeline() -> None:
     """Native 640x480, the fast-rotating handheld fr1/rpy, 60 frames: rgbd-kabsch (the RGB-D pick)
-    against plain-rgbd (ORB + depth + PnP RANSAC) on the same frames. Measured 2026-11-26 with the
-    depth weighed by the Kinect noise model: ATE 25.5 vs 27.6 mm, RPE 6.4 vs 9.9 mm (0.64x),
-    200 vs 37 frames per CPU second (a loaded machine)."""
+    against plain-rgbd (ORB + depth + PnP RANSAC) on the same frames, and against itself with the
+    Kinect's rolling shutter ignored (``readout_s=0``). Measured 2026-11-27: ATE 10.8 vs 27.6 mm
+    (0.39x; 25.5 mm ignoring the shutter), RPE 4.9 vs 9.9 mm (0.50x; 6.4 mm ignoring it)."""
     seq = open_sequence(SHARED_DATA / "tum_fr1rpy_000_199")
+    assert seq.intrinsics.readout_s > 0  # the TUM loader knows the Kinect's shutter
     gt = seq.groundtruth()
     plain = run_plain(seq, "plain-rgbd", stop=60, init_from_groundtruth=True)
     ate_p, rpe_p = _ate_rpe(plain, gt)
     ours = run_vo(seq, "rgbd-kabsch", stop=60, init_from_groundtruth=True)
     ate, rpe_m = _ate_rpe(ours, gt)
+    global_shutter = run_vo(seq, "rgbd-kabsch", stop=60, init_from_groundtruth=True, options=VoOptions(readout_s=0))
+    ate_g, rpe_g = _ate_rpe(global_shutter, gt)
     assert ours.n_failed == 0
-    assert ate < 1.3 * ate_p  # 0.92x measured; ATE over 60 frames moves +-20 % with any small change
-    assert rpe_m < 0.85 * rpe_p
+    assert ate < 0.6 * ate_p  # ATE over 60 frames moves +-20 % with any small change
+    assert rpe_m < 0.7 * rpe_p
+    assert ate < 0.7 * ate_g
+    assert rpe_m < 0.9 * rpe_g
     assert ours.fps_cpu > 2.0 * plain.fps_cpu
 
 
