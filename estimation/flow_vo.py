@@ -24,6 +24,7 @@ from estimation.features import DescriptorExtractor, shi_tomasi
 from estimation.flow import integrate_velocity, polish_motion, stereo_altitude_m, track_klt, velocity_ransac
 from estimation.motion import invert
 from estimation.pose_track import PoseTrack
+from estimation.rolling_shutter import CameraRate
 from estimation.vo_options import FlowOptions, VoOptions
 from estimation.vo_result import FrameTimer, Quality
 from flightkit.errors import EstimationError
@@ -144,13 +145,21 @@ class FlowEstimator:
         timer.lap("track")
         quality = Quality.PREDICTED
         n_inl = 0
-        T_world_cur = pose.T_world_cam @ invert(pose.predict(dt_s))
+        T_pred_cur_prev = pose.predict(dt_s)
+        T_world_cur = pose.T_world_cam @ invert(T_pred_cur_prev)
+        # A rolling shutter: the current pixels moved to the stamp with the predicted rate, then
+        # (for the polish) with the rate the estimate implies.
+        rate = CameraRate.from_step(T_pred_cur_prev, dt_s) if geo.shutter and pose.T_step is not None else None
         if len(idx) >= o.min_inliers:
-            x0, x1 = ref.xn[idx], self._normalised(px[idx])
+            x0, x1 = ref.xn[idx], self._normalised(px[idx], rate, ref.Z[idx])
             thr = fo.threshold_px / geo.intr.fx / dt_ref_s
             twist, inl = velocity_ransac(x0, x1, ref.Z[idx], dt_ref_s, thr, rng=self.rng, robust_iters=fo.robust_iters)
             if np.count_nonzero(inl) >= o.min_inliers:
                 T_ref_cur = integrate_velocity(twist, dt_ref_s)
+                if geo.shutter is not None:
+                    T_step = invert(ref.T_world_cam @ T_ref_cur) @ pose.T_world_cam
+                    rate = CameraRate.from_step(T_step, dt_s)
+                    x1 = self._normalised(px[idx], rate, ref.Z[idx])
                 if fo.polish:
                     T_ref_cur = polish_motion(
                         T_ref_cur, x0[inl], ref.Z[idx][inl], x1[inl], _FLOW_POLISH_HUBER_PX / geo.intr.fx
@@ -161,8 +170,10 @@ class FlowEstimator:
                     n_inl = int(np.count_nonzero(inl))
                     quality = Quality.GOOD if n_inl >= 2 * o.min_inliers else Quality.WEAK
         timer.lap("motion")
+        T_cur_prev = invert(T_world_cur) @ pose.T_world_cam
         if quality is not Quality.PREDICTED:
-            pose.measured(invert(T_world_cur) @ pose.T_world_cam, dt_s)
+            pose.measured(T_cur_prev, dt_s)
+        rate = CameraRate.from_step(T_cur_prev, dt_s) if geo.shutter is not None else None
         pose.T_world_cam = T_world_cur
         step_px = px[tracked] - ref.trk[tracked]
         moved = px[tracked] - ref.pts[tracked]
@@ -172,7 +183,7 @@ class FlowEstimator:
             or float(np.median(np.einsum("ij,ij->i", moved, moved))) >= fo.ref_px * fo.ref_px
         )
         if renew:
-            self._new_ref(stamp_ns, gray, right_gray, depth_m, px[tracked], step_px)
+            self._new_ref(stamp_ns, gray, right_gray, depth_m, px[tracked], step_px, rate)
             timer.lap("keyframe")
         else:
             self.ref = _FlowRef(
@@ -188,10 +199,13 @@ class FlowEstimator:
         pose.prev_stamp_ns = stamp_ns
         return FlowStep(n_inl, quality, renew)
 
-    def _normalised(self, px: F32) -> F64:
-        """Normalised image coordinates ``K^-1 [u, v, 1]`` (undistorted) of pixels, (N, 2)."""
+    def _normalised(self, px: F32, rate: CameraRate | None = None, z_m: F64 | None = None) -> F64:
+        """Normalised image coordinates ``K^-1 [u, v, 1]`` (undistorted; at the stamp with the
+        camera's ``rate``, a rolling shutter, ``z_m`` the points' depths) of pixels, (N, 2)."""
         geo = self.geo
-        und = geo.undistort(px)
+        if z_m is not None:
+            z_m = np.where(np.isfinite(z_m), z_m, 1e9)  # no depth: the rotation's part only
+        und = geo.undistort(px, rate, z_m)
         return cast(F64, np.c_[(und[:, 0] - geo.intr.cx) / geo.intr.fx, (und[:, 1] - geo.intr.cy) / geo.intr.fy])
 
     def _new_ref(
@@ -202,9 +216,11 @@ class FlowEstimator:
         depth_m: F32 | None,
         kept_px: F32,
         kept_step_px: npt.NDArray[np.floating[Any]],
+        rate: CameraRate | None = None,
     ) -> None:
         """This frame becomes the flow reference: the tracks kept, topped up with new corners
-        when fewer than half remain, each with its depth here."""
+        when fewer than half remain, each with its depth here (``rate``: the camera's, for a
+        rolling shutter)."""
         geo, o = self.geo, self.opts
         pts = np.ascontiguousarray(kept_px, dtype=np.float32).reshape(-1, 2)
         step = np.asarray(kept_step_px, dtype=np.float64).reshape(-1, 2)
@@ -218,15 +234,17 @@ class FlowEstimator:
             pts = np.concatenate([pts, new]) if len(pts) else new
             step = np.concatenate([step, np.zeros((len(new), 2))])
         if depth_m is not None:
-            Z = geo.depth_at(depth_m, pts)
+            X, ok = geo.depth_points(depth_m, pts, rate)
+            Z = np.where(ok, X[:, 2], np.nan)
         elif self.fo.depth == "stereo":
             if right_gray is None or geo.rig is None:
                 raise EstimationError("FlowOptions.depth='stereo' needs the right image in every frame")
-            X, ok = geo.points_3d(pts, right_gray, gray, None, self._init_disparity())
+            X, ok = geo.points_3d(pts, right_gray, gray, None, self._init_disparity(), rate=rate)
             Z = np.where(ok, X[:, 2], np.nan)
         else:
             Z = np.full(len(pts), self.altitude_m)
-        self.ref = _FlowRef(gray, stamp_ns, self.pose.T_world_cam.copy(), pts, self._normalised(pts), Z, pts, step)
+        xn = self._normalised(pts, rate, Z)
+        self.ref = _FlowRef(gray, stamp_ns, self.pose.T_world_cam.copy(), pts, xn, Z, pts, step)
 
     def _init_disparity(self) -> float:
         """Disparity to start sparse stereo from: that of the current reference's median depth."""

@@ -18,7 +18,7 @@ from typing import Any
 
 from estimation.evaluation import EvaluationReport, evaluate
 from estimation.evaluation_checks import alignment_warnings, first_pose_rotation_rmse_deg
-from estimation.pipeline import VoResult, run_vo
+from estimation.pipeline import VoOptions, VoResult, run_vo
 from estimation.timing import TimingTable
 from flightkit.apps.sequences import SIM_PREFIX, open_dataset
 from flightkit.datasets.base import Sequence
@@ -158,6 +158,7 @@ def run_vo_job(
     start: int = 0,
     stop: int | None = None,
     init_from_groundtruth: bool = False,
+    readout_s: float | None = None,
     evaluate_result: bool = False,
     alignment: str = "se3",
     plot_dir: Path | None = None,
@@ -166,7 +167,8 @@ def run_vo_job(
     """Run ``method`` over ``dataset`` (folder, recording or ``sim:`` spec), write the camera
     trajectory as TUM to ``out`` (default ``<sequence>_<method>.txt``), and evaluate it
     against the sequence's ground truth when ``evaluate_result`` or ``plot_dir`` asks for it.
-    Blocks until done; ``progress(done, total)`` is called after every frame.
+    ``readout_s``: the camera's rolling-shutter readout (None: the sequence's). Blocks until
+    done; ``progress(done, total)`` is called after every frame.
 
     Raises:
         DatasetError: unreadable input. EstimationError: the method cannot run on this sequence,
@@ -183,6 +185,7 @@ def run_vo_job(
         stop=stop,
         progress=progress,
         T_body_camera=getattr(seq, "T_body_camera", None),
+        options=None if readout_s is None else VoOptions(readout_s=readout_s),
     )
     elapsed_s = time.perf_counter() - t_start
     result.check()  # most frames not estimated: an error, not a file of predictions

@@ -81,11 +81,28 @@ def register(subparsers: Any) -> None:
     rn.add_argument("--start", type=int, default=0, help="first frame")
     rn.add_argument("--stop", type=int, help="stop before this frame")
     rn.add_argument("--init-from-gt", action="store_true", help="start at the first ground-truth pose")
+    rn.add_argument(
+        "--readout-ms",
+        type=_readout_ms,
+        help="the camera's rolling-shutter readout, first row to last, ms (default: the dataset's, 20 for the "
+        "TUM and 7-Scenes Kinects, 0 for a global shutter)",
+    )
     rn.add_argument("--eval", action="store_true", help="evaluate against the sequence's ground truth")
     rn.add_argument("--align", choices=("se3", "sim3", "none"), default="se3", help="alignment for --eval")
     rn.add_argument("--plot-dir", type=Path, help="write evaluation plots here (implies --eval)")
     rn.add_argument("--json", action="store_true", help="print results as JSON")
     rn.set_defaults(func=run_vo_command)
+
+
+def _readout_ms(text: str) -> float:
+    """``--readout-ms``: a readout time in ms, 0 or more."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a readout in ms (0 for a global shutter, or more)")
+    return value
 
 
 def _usage(parser: argparse.ArgumentParser) -> int:
@@ -194,6 +211,7 @@ def run_vo_command(args: argparse.Namespace) -> int:
             start=args.start,
             stop=args.stop,
             init_from_groundtruth=args.init_from_gt,
+            readout_s=None if args.readout_ms is None else args.readout_ms * 1e-3,
             evaluate_result=args.eval,
             alignment=args.align,
             plot_dir=args.plot_dir,
