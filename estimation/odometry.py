@@ -274,11 +274,14 @@ class VisualOdometry:
                 self.front.set_keyframe_rate(rate_m)
                 rate = None
             if rate is None or shutter.max_shift_px(rate_m.minus(rate)) > _RATE_REDO_PX:
+                meas = self.polisher.meas
                 m2 = self._estimator.estimate(
                     self._tracks(idx, px, m.T_cur_ref, True, rate_m, gray, right_gray, depth_m)
                 )
                 if m2.ok:
                     m = m2
+                else:
+                    self.polisher.meas = meas
         return m if m.ok else None
 
     def _revisit(self, gray: npt.NDArray[np.uint8], rate: CameraRate | None) -> bool:

@@ -17,6 +17,7 @@ from typing import Any
 import cv2
 import numpy as np
 import numpy.typing as npt
+from numba import njit
 
 __all__ = ["CameraRate", "RollingShutter"]
 
@@ -91,21 +92,48 @@ class RollingShutter:
         n = len(und_px)
         if n == 0:
             return np.asarray(und_px, dtype=np.float64)
-        w, v = rate.omega_rad_s, rate.velocity_m_s
-        x = (und_px[:, 0] - self.cx) / self.fx
-        y = (und_px[:, 1] - self.cy) / self.fy
-        dt = self.row_dt_s(rows_px)
+        z = np.full(n, np.inf) if z_m is None else np.ascontiguousarray(z_m, dtype=np.float64)
+        return _move_pixels(
+            np.ascontiguousarray(und_px, dtype=np.float64),
+            np.ascontiguousarray(rows_px, dtype=np.float64),
+            z,
+            rate.omega_rad_s,
+            rate.velocity_m_s,
+            self.fx,
+            self.fy,
+            self.cx,
+            self.cy,
+            0.5 * (self.height_px - 1),
+            self.readout_s / self.height_px,
+        )
+
+
+@njit(cache=True)
+def _move_pixels(
+    und: Any,
+    rows: Any,
+    z: Any,
+    w: Any,
+    v: Any,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    row_mid: float,
+    line_s: float,
+) -> F64:
+    """:meth:`RollingShutter.pixels` in one compiled loop (``z`` inf where unknown)."""
+    n = und.shape[0]
+    out = np.empty((n, 2))
+    for i in range(n):
+        x = (und[i, 0] - cx) / fx
+        y = (und[i, 1] - cy) / fy
+        dt = (rows[i] - row_mid) * line_s
+        inv_z = 1.0 / z[i]
         # b = (x, y, 1) moved by dt * (w x b + v / z)
-        bx = w[1] - w[2] * y
-        by = w[2] * x - w[0]
-        bz = w[0] * y - w[1] * x
-        if z_m is not None:
-            inv_z = 1.0 / np.asarray(z_m, dtype=np.float64)
-            bx += v[0] * inv_z
-            by += v[1] * inv_z
-            bz += v[2] * inv_z
-        inv_w = 1.0 / (1.0 + dt * bz)
-        out = np.empty((n, 2))
-        out[:, 0] = self.fx * (x + dt * bx) * inv_w + self.cx
-        out[:, 1] = self.fy * (y + dt * by) * inv_w + self.cy
-        return out
+        bx = x + dt * (w[1] - w[2] * y + v[0] * inv_z)
+        by = y + dt * (w[2] * x - w[0] + v[1] * inv_z)
+        bz = 1.0 + dt * (w[0] * y - w[1] * x + v[2] * inv_z)
+        out[i, 0] = fx * bx / bz + cx
+        out[i, 1] = fy * by / bz + cy
+    return out
