@@ -77,7 +77,17 @@ from flightkit.datasets.registry import open_sequence  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
-RGBD = ["rgbd-pnp", "rgbd-essential", "rgbd-kabsch", "rgbd-kabsch@weigh", "rgbd-kabsch@revisit", "flow"]
+RGBD = [
+    "rgbd-pnp",
+    "rgbd-essential",
+    "rgbd-kabsch",
+    "rgbd-kabsch@weigh",
+    "rgbd-kabsch@revisit",
+    "flow",
+    "rgbd-pnp@global",
+    "rgbd-essential@global",
+    "rgbd-kabsch@global",
+]
 STEREO = [
     "stereo",
     "stereo@lk",
@@ -105,6 +115,7 @@ VARIANTS: dict[str, VoOptions] = {
     "drop": VoOptions(far_points="drop", stereo_offset=False),  # stereo before the eleventh pass
     "offset": VoOptions(far_points="drop"),  # stereo: far points dropped, the disparity offset estimated online
     "far": VoOptions(stereo_offset=False),  # stereo: far points weighted, no disparity offset
+    "global": VoOptions(readout_s=0.0),  # the rows read as exposed at once (before the fourteenth pass)
     "revisit": VoOptions(revisit_keyframes=30),  # RGB-D returning to kept keyframes the camera sees again
     "weigh": VoOptions(point_uncertainty=True),  # RGB-D: the polish weighs each point by its keyframe depth's noise
     "exact": VoOptions(point_uncertainty=False),  # stereo: the polish takes the keyframe points as exact
