@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, cast
 
 import cv2
@@ -160,6 +160,11 @@ class FlowEstimator:
                     T_step = invert(ref.T_world_cam @ T_ref_cur) @ pose.T_world_cam
                     rate = CameraRate.from_step(T_step, dt_s)
                     x1 = self._normalised(px[idx], rate, ref.Z[idx])
+                    if not ref.has_rate:
+                        # The first reference was made before any motion: it gets this step's rate.
+                        ref = replace(ref, xn=self._normalised(ref.pts, rate, ref.Z), has_rate=True)
+                        self.ref = ref
+                        x0 = ref.xn[idx]
                 if fo.polish:
                     T_ref_cur = polish_motion(
                         T_ref_cur, x0[inl], ref.Z[idx][inl], x1[inl], _FLOW_POLISH_HUBER_PX / geo.intr.fx
@@ -195,6 +200,7 @@ class FlowEstimator:
                 ref.Z[tracked],
                 px[tracked],
                 step_px,
+                ref.has_rate,
             )
         pose.prev_stamp_ns = stamp_ns
         return FlowStep(n_inl, quality, renew)
@@ -244,7 +250,7 @@ class FlowEstimator:
         else:
             Z = np.full(len(pts), self.altitude_m)
         xn = self._normalised(pts, rate, Z)
-        self.ref = _FlowRef(gray, stamp_ns, self.pose.T_world_cam.copy(), pts, xn, Z, pts, step)
+        self.ref = _FlowRef(gray, stamp_ns, self.pose.T_world_cam.copy(), pts, xn, Z, pts, step, rate is not None)
 
     def _init_disparity(self) -> float:
         """Disparity to start sparse stereo from: that of the current reference's median depth."""
@@ -259,7 +265,8 @@ class FlowEstimator:
 class _FlowRef:
     """The flow method's reference frame: its image, time and pose, its points (pixels,
     normalised coordinates, depth in metres, NaN where unknown), and where each point was
-    last tracked to and how far it moved in that frame (the next frame's guess)."""
+    last tracked to and how far it moved in that frame (the next frame's guess); ``has_rate``:
+    its points were moved to its stamp with the camera's rate (a rolling shutter)."""
 
     gray: npt.NDArray[np.uint8]
     stamp_ns: int
@@ -269,3 +276,4 @@ class _FlowRef:
     Z: F64
     trk: F32
     step_px: npt.NDArray[np.floating[Any]]  # float32 from tracking, float64 when topped up
+    has_rate: bool = False
