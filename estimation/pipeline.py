@@ -42,6 +42,11 @@ prediction and flagged ``Quality.PREDICTED``, never silently dropped. Keyframes 
 by parallax and motion (:class:`~estimation.keyframes.KeyframePolicy`); an optional local
 bundle adjustment refines the last N keyframes.
 
+A rolling-shutter camera (``CameraIntrinsics.readout_s`` > 0, e.g. the Kinect's 20 ms) has every
+measurement moved from its row's time to the frame's stamp with the camera's rate
+(``estimation.rolling_shutter``); the keyframe methods measure the motion again with the rate
+their first estimate implies.
+
 Frames: camera frames are OpenCV; the world frame is the first camera's unless
 ``T_world_camera0`` (or ``init_from_groundtruth``) says otherwise; body poses are
 ``T_world_body = T_world_camera @ inv(T_body_camera)``.
@@ -111,7 +116,8 @@ def warm_up(method: Method | str) -> list[FramePose]:
     )
     from flightkit.datasets.base import CameraIntrinsics
 
-    intr = CameraIntrinsics(250.0, 250.0, w / 2, h / 2, w, h)
+    # A rolling shutter too, so that its kernel (estimation.rolling_shutter) is loaded as well.
+    intr = CameraIntrinsics(250.0, 250.0, w / 2, h / 2, w, h, (), 0.02)
     depth = np.full((h, w), 2.0, np.float32)
     vo = VisualOdometry(m, intr, 0.1, intr)
     poses = []

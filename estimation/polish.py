@@ -121,7 +121,8 @@ class PosePolisher:
         """The same polish as PnP's for a motion found otherwise (5-point, Kabsch): reprojection
         of the keyframe points plus this frame's depth (``refine_with_depth``), inliers
         re-selected on the result; the depth measurements are kept for fusion. ``z_cur``: the
-        depth at ``px_cur`` when the caller has looked it up already (Kabsch)."""
+        depth at ``px_cur`` (at the frame's stamp) when the caller has looked it up already
+        (Kabsch); ``rate``: the camera's (a rolling shutter)."""
         o = self.opts
         if not (m.ok and o.refine_with_depth):
             return m
