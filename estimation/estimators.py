@@ -66,6 +66,8 @@ class Tracks:
             (``frontend.disparity_variance``), or None (``VoOptions.point_uncertainty`` off).
         rate, rate_kf: the camera's rate at the current frame and at the keyframe, for a rolling
             shutter (None: a global shutter or unknown).
+        guess_inliers: ``guess`` is a motion measured from these tracks with this many inliers
+            (the rolling shutter's second measurement), else None: a prediction.
     """
 
     X_kf: F64
@@ -80,6 +82,14 @@ class Tracks:
     var_kf: F64 | None = None
     rate: CameraRate | None = None
     rate_kf: CameraRate | None = None
+    guess_inliers: int | None = None
+
+    def prior_fraction(self, fraction: float) -> float:
+        """The share of the tracks a prior check needs: ``fraction``, or that share of the
+        ``guess_inliers`` when the guess is a measured motion (its outliers stay outliers)."""
+        if self.guess_inliers is None or not len(self.px_cur):
+            return fraction
+        return min(fraction, fraction * self.guess_inliers / len(self.px_cur))
 
 
 class MotionEstimator(Protocol):
@@ -118,7 +128,7 @@ class EssentialEstimator:
                     guess,
                     gate_px=eo.prior_gate_px,
                     threshold_px=eo.threshold_px,
-                    min_fraction=eo.prior_min_fraction,
+                    min_fraction=t.prior_fraction(eo.prior_min_fraction),
                     min_inliers=o.min_inliers,
                     iterations=eo.prior_iterations,
                 )
@@ -166,7 +176,7 @@ class EssentialEstimator:
                 t.gray,
                 t.right_gray,
                 eo.pnp_prior_gate_px,
-                eo.prior_min_fraction,
+                t.prior_fraction(eo.prior_min_fraction),
                 t.var_kf,
                 t.rate,
             )
@@ -226,7 +236,7 @@ class KabschEstimator:
                 t.guess,
                 threshold_m=thr_m,
                 gate_m=ko.prior_gate * thr_m,
-                min_fraction=ko.prior_min_fraction,
+                min_fraction=t.prior_fraction(ko.prior_min_fraction),
                 min_inliers=o.min_inliers,
             )
             self.paths["kabsch-prior" if m_rigid is not None else "kabsch-ransac"] += 1
@@ -299,7 +309,7 @@ class PnpEstimator:
                 t.gray,
                 t.right_gray,
                 po.prior_gate_px,
-                po.prior_min_fraction,
+                t.prior_fraction(po.prior_min_fraction),
                 None if t.var_kf is None else t.var_kf[idx],
                 t.rate,
             )

@@ -226,9 +226,11 @@ class VisualOdometry:
         gray: npt.NDArray[np.uint8],
         right_gray: npt.NDArray[np.uint8] | None,
         depth_m: F32 | None,
+        guess_inliers: int | None = None,
     ) -> Tracks:
         """The tracked keyframe points ``idx`` (current pixels ``px[idx]``) for the estimator; their
-        undistorted pixels at the frame's stamp with the camera's ``rate`` (a rolling shutter)."""
+        undistorted pixels at the frame's stamp with the camera's ``rate`` (a rolling shutter);
+        ``guess_inliers``: the inliers of the measured motion ``T_guess_cur_kf`` (``Tracks``)."""
         front = self.front
         X_kf = front.kf_X[idx]
         px_cur = px[idx]
@@ -247,6 +249,7 @@ class VisualOdometry:
             var_kf,
             rate,
             front.kf_rate,
+            guess_inliers,
         )
 
     def _measure(
@@ -275,8 +278,11 @@ class VisualOdometry:
                 rate = None
             if rate is None or shutter.max_shift_px(rate_m.minus(rate)) > _RATE_REDO_PX:
                 meas = self.polisher.meas
+                # From the first measurement, whose outliers stay outliers: the prior check needs
+                # its share of inliers, not the options' (else it falls to RANSAC again).
+                n_inl = int(np.count_nonzero(m.inliers))
                 m2 = self._estimator.estimate(
-                    self._tracks(idx, px, m.T_cur_ref, True, rate_m, gray, right_gray, depth_m)
+                    self._tracks(idx, px, m.T_cur_ref, True, rate_m, gray, right_gray, depth_m, n_inl)
                 )
                 if m2.ok:
                     m = m2

@@ -166,3 +166,31 @@ def test_rgbd_methods_undo_a_known_rolling_shutter(
     assert pos_rs < 0.1 * pos_gs
     assert rot_rs < 0.1 * rot_gs
     assert pos_rs < 0.004 and rot_rs < 0.15
+
+
+def test_a_measured_guess_asks_the_prior_check_for_its_own_share_of_inliers() -> None:
+    """The second measurement starts from the first, whose outliers stay outliers: the prior
+    check then needs the options' share of those inliers, not of every track."""
+    from estimation.estimators import Tracks
+
+    n = 100
+    px = np.zeros((n, 2), np.float32)
+    gray = np.zeros((4, 4), np.uint8)
+
+    def tracks(guess_inliers: int | None) -> Tracks:
+        return Tracks(
+            np.ones((n, 3)),
+            px,
+            px,
+            px.astype(np.float64),
+            np.eye(4),
+            True,
+            gray,
+            None,
+            None,
+            guess_inliers=guess_inliers,
+        )
+
+    assert tracks(None).prior_fraction(0.9) == 0.9  # a prediction: the options' share
+    assert tracks(80).prior_fraction(0.9) == pytest.approx(0.72)  # 90 % of the 80 inliers
+    assert tracks(100).prior_fraction(0.9) == 0.9  # never more than the options ask
