@@ -389,7 +389,7 @@ class VisualOdometry:
         T_cur_prev = T_cur_kf @ invert(self.T_prev_kf)
         if quality is not Quality.PREDICTED:
             pose.measured(T_cur_prev, dt_s)
-        if shutter is not None and dt_s > 0:
+        if shutter is not None:
             rate = CameraRate.from_step(T_cur_prev, dt_s)
         pose.T_world_cam = front.T_world_kf @ invert(T_cur_kf)
         self.T_prev_kf = T_cur_kf
