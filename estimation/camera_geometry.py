@@ -147,7 +147,7 @@ class CameraGeometry:
         # The depth image is read where the point is at the stamp: taken as a global-shutter image
         # at the colour stamp, which measured better than giving it the colour rows' timing
         # (docs/estimation-log.md).
-        und_mid = self.shutter.pixels(und, px[:, 1], rate, np.where(ok, z, 1e9))
+        und_mid = self.shutter.pixels(und, px[:, 1], rate, z)
         z = self.depth_at(depth_m, (px + (und_mid - und)).astype(np.float32))
         ok = np.isfinite(z)
         return self.backproject(und_mid, np.where(ok, z, 1.0)), ok

@@ -209,8 +209,6 @@ class FlowEstimator:
         """Normalised image coordinates ``K^-1 [u, v, 1]`` (undistorted; at the stamp with the
         camera's ``rate``, a rolling shutter, ``z_m`` the points' depths) of pixels, (N, 2)."""
         geo = self.geo
-        if z_m is not None:
-            z_m = np.where(np.isfinite(z_m), z_m, 1e9)  # no depth: the rotation's part only
         und = geo.undistort(px, rate, z_m)
         return cast(F64, np.c_[(und[:, 0] - geo.intr.cx) / geo.intr.fx, (und[:, 1] - geo.intr.cy) / geo.intr.fy])
 

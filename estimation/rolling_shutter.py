@@ -49,6 +49,10 @@ class CameraRate:
         return CameraRate(omega, np.asarray(-T_cur_prev[:3, 3] / dt_s, dtype=np.float64))
 
 
+_FAR_M = 1e9
+"""The depth given to a point whose depth is unknown: its velocity part vanishes."""
+
+
 class RollingShutter:
     """Row timing of one rolling-shutter camera (pixels are undistorted ones of ``K``).
 
@@ -87,12 +91,16 @@ class RollingShutter:
 
     def pixels(self, und_px: F64, rows_px: Rows, rate: CameraRate, z_m: F64 | None = None) -> F64:
         """Undistorted pixels seen at their rows' times, where the camera at the stamp sees the
-        same points. ``z_m``: the points' depths when known (for the velocity's part), else
-        only the rotation is undone."""
+        same points. ``z_m``: the points' depths (for the velocity's part); where it is None or
+        not finite only the rotation is undone."""
         n = len(und_px)
         if n == 0:
             return np.asarray(und_px, dtype=np.float64)
-        z = np.full(n, np.inf) if z_m is None else np.ascontiguousarray(z_m, dtype=np.float64)
+        if z_m is None:
+            z = np.full(n, np.inf)
+        else:
+            z_m = np.asarray(z_m, dtype=np.float64)
+            z = np.where(np.isfinite(z_m), z_m, _FAR_M)
         return _move_pixels(
             np.ascontiguousarray(und_px, dtype=np.float64),
             np.ascontiguousarray(rows_px, dtype=np.float64),
@@ -122,7 +130,7 @@ def _move_pixels(
     row_mid: float,
     line_s: float,
 ) -> F64:
-    """:meth:`RollingShutter.pixels` in one compiled loop (``z`` inf where unknown)."""
+    """:meth:`RollingShutter.pixels` in one compiled loop (``z`` inf: no velocity part)."""
     n = und.shape[0]
     out = np.empty((n, 2))
     for i in range(n):
