@@ -15,7 +15,9 @@ its header stamp (the capture time, as the device gave it or not: the channel's
 ``log_time`` (when the recorder received it). The recording carries
 metadata records: ``flightkit`` (version, host), ``config`` (the lab config), ``extrinsics``
 (``T_body_camera``, ``T_world_mocap``), and ``calibration.<camera>`` for every camera whose
-camera_info was seen on the bus.
+camera_info was seen on the bus. CameraInfo has no rolling-shutter readout, so the recorder asks the
+camera for it on the bus (``.../calibration``, :mod:`flightkit.bus.camera_calibration`) and keeps its
+``readout_s`` in that record: it reaches a recorder in another process with no CameraInfo field misused.
 
 Threads: Zenoh delivers samples on its own threads; :meth:`BusRecorder._on_sample` only
 wraps the payload and offers it to the recorder's queue (never blocks), so a stalled disk
@@ -39,13 +41,14 @@ import zenoh
 
 from capture.config import CaptureConfig
 from capture.recorder import Compression, Recorder, RecordingReport, StreamSample, StreamStats
+from flightkit.bus.camera_calibration import ask_calibration, calibration_key
 from flightkit.bus.clock_exchange import ClockWatch, bus_host_name
 from flightkit.bus.image_msgs import CameraInfo
 from flightkit.bus.keys import Keys
 from flightkit.bus.msg_base import schema_text
 from flightkit.bus.pubsub import BusSample, BusSubscriber
 from flightkit.bus.session import open_session
-from flightkit.bus.streams import is_best_effort
+from flightkit.bus.streams import check_readout_s, is_best_effort
 from flightkit.calibration.clock_sync import CLOCK_OFFSETS_RECORD
 from flightkit.clock import WallClock
 from flightkit.config import BusConfig, LabConfig
@@ -55,6 +58,8 @@ from flightkit.errors import BusError, CaptureError
 __all__ = ["BusRecorder", "compression_from_name", "recording_metadata", "start_recording"]
 
 logger = logging.getLogger(__name__)
+
+_ASK_TIMEOUT_S = 2.0  # a camera's answer to the calibration query (loopback: ~1 ms; none: at once)
 
 
 def compression_from_name(name: str) -> Compression:
@@ -169,7 +174,11 @@ class BusRecorder:
         self._time_ns = time_ns
         self._schemas: dict[str, str] = {}
         self._seen_info: set[str] = set()
+        self._session = session
         self._lock = threading.Lock()
+        self._asking = threading.Condition(self._lock)
+        self._asked = 0  # calibration queries not answered yet
+        self._calibrated: set[str] = set()
         self.recorder = Recorder(
             path,
             self._schema_for,
@@ -238,26 +247,52 @@ class BusRecorder:
         except BusError:
             return
         camera = s.key.rstrip("/").split("/")[-2]
-        self.recorder.add_metadata(
-            f"calibration.{camera}",
-            {
-                "topic": s.key,
-                "width": str(info.width),
-                "height": str(info.height),
-                "distortion_model": info.distortion_model,
-                "d": " ".join(repr(v) for v in info.d),
-                "k": " ".join(repr(v) for v in info.k),
-                "p": " ".join(repr(v) for v in info.p),
-                "frame_id": info.header.frame_id,
-                "source": "camera_info",
-            },
-        )
+        record = {
+            "topic": s.key,
+            "width": str(info.width),
+            "height": str(info.height),
+            "distortion_model": info.distortion_model,
+            "d": " ".join(repr(v) for v in info.d),
+            "k": " ".join(repr(v) for v in info.k),
+            "p": " ".join(repr(v) for v in info.p),
+            "frame_id": info.header.frame_id,
+            "source": "camera_info",
+        }
+        with self._lock:
+            self._asked += 1
+        try:
+            key = calibration_key(s.key)
+        except BusError:  # not a flightkit camera key: nobody to ask
+            self._write_calibration(camera, record, {})
+            return
+        ask_calibration(self._session, key,
+                        lambda fields: self._write_calibration(camera, record, fields), _ASK_TIMEOUT_S)
+
+    def _write_calibration(self, camera: str, record: dict[str, str], fields: Mapping[str, str]) -> None:
+        """Zenoh thread: the camera's answer is in (``{}``: none); write ``calibration.<camera>``."""
+        if "readout_s" in fields:
+            try:
+                record["readout_s"] = repr(check_readout_s(fields["readout_s"]))
+            except BusError as exc:
+                logger.warning("camera %s: not recording its readout: %s", record["topic"], exc)
+        self.recorder.add_metadata(f"calibration.{camera}", record)
+        with self._lock:
+            self._asked -= 1
+            self._calibrated.add(record["topic"])
+            self._asking.notify_all()
 
     # ------------------------------------------------------------------ status
 
     def snapshot(self) -> dict[str, StreamStats]:
         """Per-stream counters for a live display."""
         return self.recorder.snapshot()
+
+    @property
+    def calibrated(self) -> frozenset[str]:
+        """The camera_info keys whose ``calibration.<camera>`` record is written (with the camera's
+        answer to the calibration query, or without one when it gave none)."""
+        with self._lock:
+            return frozenset(self._calibrated)
 
     @property
     def stopped(self) -> bool:
@@ -286,6 +321,8 @@ class BusRecorder:
         for sub in self._subs:
             sub.close()
         self._subs = []
+        with self._asking:  # a camera's calibration record waits for its answer (a query times out)
+            self._asking.wait_for(lambda: self._asked == 0, _ASK_TIMEOUT_S + 1.0)
         watch, self.clock_watch = self.clock_watch, None
         if watch is not None:
             watch.stop()

@@ -19,8 +19,10 @@ a buffer time that is not plausible) ``clock.time_ns()`` right after ``grab()`` 
 when the frame reached us (``host``, said once in the log).
 
 Calibration: the video-dataset format (:mod:`flightkit.datasets.video`: JSON or OpenCV
-YAML with fx, fy, cx, cy, width, height, dist), found beside a video file or given
-explicitly; a :class:`~flightkit.bus.streams.CameraModel` may be passed instead.
+YAML with fx, fy, cx, cy, width, height, dist and an optional rolling-shutter ``readout_s``),
+found beside a video file or given explicitly; a :class:`~flightkit.bus.streams.CameraModel`
+may be passed instead. It is served on ``<ns>/camera/<name>/calibration`` as well
+(:mod:`flightkit.bus.camera_calibration`), which is how the readout reaches a recording.
 
 A device that vanishes (unplugged, driver reset) is reported once (WARNING) and reopened
 every ``retry_s`` until it is back (INFO); frames in between are simply missing.
@@ -40,13 +42,14 @@ import numpy.typing as npt
 import zenoh
 
 from capture.sources._runner import SourceThread
+from flightkit.bus.camera_calibration import CalibrationServer
 from flightkit.bus.image_msgs import CameraInfo, CompressedImage
 from flightkit.bus.keys import Keys
 from flightkit.bus.msg_base import Header
 from flightkit.bus.pubsub import BusPublisher
 from flightkit.bus.streams import CameraModel, CameraStream, has_subscribers, optical_frame_id
 from flightkit.clock import STAMP_DEVICE, STAMP_HOST, Clock
-from flightkit.errors import CaptureError, DatasetError
+from flightkit.errors import BusError, CaptureError, DatasetError
 
 __all__ = [
     "COLOR_FORMATS",
@@ -89,10 +92,11 @@ def _is_live(device: int | str) -> bool:
 
 
 def camera_model_from_calibration(path: str | os.PathLike[str]) -> CameraModel:
-    """Read a calibration file (the video-dataset JSON/YAML format) into a :class:`CameraModel`.
+    """Read a calibration file (the video-dataset JSON/YAML format) into a :class:`CameraModel`,
+    with its ``readout_s`` (rolling shutter, s; 0 when absent).
 
     Raises:
-        CaptureError: the file is missing, unreadable or lacks a key (named).
+        CaptureError: the file is missing, unreadable, lacks a key (named) or gives a bad readout.
     """
     from flightkit.datasets.video import read_calibration
 
@@ -106,19 +110,24 @@ def camera_model_from_calibration(path: str | os.PathLike[str]) -> CameraModel:
     except DatasetError as exc:
         raise CaptureError(str(exc)) from exc
     dist = tuple(float(d) for d in cal.get("dist", ()) or ())
-    return CameraModel(
-        int(cal["width"]),
-        int(cal["height"]),
-        float(cal["fx"]),
-        float(cal["fy"]),
-        float(cal["cx"]),
-        float(cal["cy"]),
-        dist,
-    )
+    try:
+        return CameraModel(
+            int(cal["width"]),
+            int(cal["height"]),
+            float(cal["fx"]),
+            float(cal["fy"]),
+            float(cal["cx"]),
+            float(cal["cy"]),
+            dist,
+            readout_s=cal.get("readout_s", 0.0),
+        )
+    except BusError as exc:
+        raise CaptureError(f"calibration file {p}: {exc}") from exc
 
 
 class _JpegStream:
-    """JPEG-only publishing: image/compressed + camera_info (no raw image)."""
+    """JPEG-only publishing: image/compressed + camera_info (no raw image), and the calibration
+    served as :class:`~flightkit.bus.streams.CameraStream` serves it."""
 
     def __init__(
         self, session: zenoh.Session, keys: Keys, name: str, model: CameraModel, quality: int, clock: Clock
@@ -134,6 +143,7 @@ class _JpegStream:
         self._info = BusPublisher(
             session, self.info_key, CameraInfo, reliable=True, drop_when_congested=False, clock=clock
         )
+        self._calibration = CalibrationServer(session, keys.camera_calibration(name), model.as_metadata())
         self._buf = bytearray()
 
     @property
@@ -156,6 +166,7 @@ class _JpegStream:
     def close(self) -> None:
         self._jpeg.close()
         self._info.close()
+        self._calibration.close()
 
 
 class OpenCVCameraPublisher(SourceThread):

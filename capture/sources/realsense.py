@@ -14,6 +14,9 @@ camera's intrinsics and frame id. The camera's depth unit (``depth_scale``, metr
 count: 0.001 on most D4xx, 0.0001 on some presets) is converted to millimetres, the unit of
 the bus's 16UC1 depth; counts beyond 65.535 m and invalid (0) pixels stay 0.
 
+Rolling shutter: the D4xx colour sensors are rolling shutter, but librealsense does not give the
+readout time; the colour stream carries ``readout_s`` only when the caller gives it (0 otherwise).
+
 Stamps: the frameset's timestamp when the camera clock is the global time domain (the
 librealsense default on D4xx maps the hardware clock into the host clock: the device's capture
 time, ``capture_stamp=device`` on the bus and in a recording), otherwise the injected clock at
@@ -25,6 +28,7 @@ and are what the unit tests cover; the device loop needs the package and a camer
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import logging
 from types import ModuleType
@@ -36,9 +40,9 @@ import zenoh
 
 from capture.sources._runner import SourceThread
 from flightkit.bus.keys import Keys
-from flightkit.bus.streams import CameraModel, CameraStream, optical_frame_id
+from flightkit.bus.streams import CameraModel, CameraStream, check_readout_s, optical_frame_id
 from flightkit.clock import STAMP_DEVICE, STAMP_HOST, Clock
-from flightkit.errors import CaptureError
+from flightkit.errors import BusError, CaptureError
 
 __all__ = [
     "RealSensePublisher",
@@ -140,9 +144,11 @@ class RealSensePublisher(SourceThread):
         serial: pick one camera by serial number (None: the first one).
         jpeg_quality: also publish the colour stream as JPEG (0 = off).
         retry_s: after the camera vanished, how often to try restarting the pipeline.
+        readout_s: the colour sensor's rolling-shutter readout, first row to last, s, when known
+            (the SDK does not give it); 0 = not known or a global shutter.
 
     Raises:
-        CaptureError: pyrealsense2 is missing (see :func:`import_realsense`).
+        CaptureError: pyrealsense2 is missing (see :func:`import_realsense`), or a bad ``readout_s``.
     """
 
     thread_name = "realsense"
@@ -162,6 +168,7 @@ class RealSensePublisher(SourceThread):
         jpeg_quality: int = 0,
         retry_s: float = 1.0,
         frame_timeout_s: float = 2.0,
+        readout_s: float = 0.0,
     ) -> None:
         super().__init__(clock)
         self._rs = import_realsense()
@@ -173,6 +180,10 @@ class RealSensePublisher(SourceThread):
         self.jpeg_quality = jpeg_quality
         self.retry_s = retry_s
         self.frame_timeout_s = frame_timeout_s
+        try:
+            self.readout_s = check_readout_s(readout_s)
+        except BusError as exc:
+            raise CaptureError(f"RealSense: {exc}") from exc
         self.color: CameraStream | None = None
         self._stamp_source = ""  # device or host, once the first frameset said
         self.depth: CameraStream | None = None
@@ -202,8 +213,10 @@ class RealSensePublisher(SourceThread):
         model = camera_model_from_intrinsics(intr)
         if self.model is None:  # publishers are declared once, with the first profile's calibration
             self.model = model
+            color_model = dataclasses.replace(model, readout_s=self.readout_s)
             self.color = CameraStream(
-                self._session, self._keys, "color", model, "rgb8", jpeg_quality=self.jpeg_quality, clock=self.clock
+                self._session, self._keys, "color", color_model, "rgb8", jpeg_quality=self.jpeg_quality,
+                clock=self.clock,
             )
             if self.depth_enabled:
                 self.depth = CameraStream(

@@ -9,11 +9,13 @@ it; ``speed=inf`` publishes as fast as the bus takes it):
   with its header stamp as the capture stamp (the recorded ``publish_time`` for a message
   without one, e.g. tf), its recorded ``publish_time`` as the bus time and its channel's
   ``capture_stamp`` source, in ``log_time`` order. A recorder on the other side writes byte-identical payloads.
+  Each camera's ``calibration.<camera>`` record is served on its calibration key
+  (:mod:`flightkit.bus.camera_calibration`), so its rolling-shutter readout is recorded again.
 * :class:`DatasetReplayPublisher` -- a dataset folder (TUM RGB-D, EuRoC, KITTI, 7-Scenes, a
   video; anything :func:`flightkit.datasets.open_sequence` reads): images are decoded and
   published like a camera driver would (``color`` bgr8, or ``left``/``right`` mono8 for
   stereo, ``gray`` for mono; ``depth`` 16UC1 mm; camera_info from the dataset's
-  calibration), and the ground truth as ``geometry_msgs/PoseStamped`` on
+  calibration, its rolling-shutter readout served beside it), and the ground truth as ``geometry_msgs/PoseStamped`` on
   ``<ns>/mocap/<gt_body>/pose`` (frame ``mocap``: the dataset's world frame), each at its
   own dataset stamp. A TUM folder exported by flightkit (with ``camera.yaml``) is read with
   its own calibration, so export -> replay -> record -> export round-trips.
@@ -37,6 +39,7 @@ import zenoh
 
 from capture.sources._runner import SourceThread
 from capture.sources.realsense import depth_to_mm
+from flightkit.bus.camera_calibration import CalibrationServer, calibration_key
 from flightkit.bus.image_msgs import CameraInfo, CompressedImage, Image
 from flightkit.bus.keys import Keys
 from flightkit.bus.pose_msgs import Odometry, PoseStamped, TransformStamped
@@ -146,6 +149,7 @@ class McapReplayPublisher(SourceThread):
                 logger.warning("not replaying %s: %s", st.topic, exc)
                 continue
             self.key_of[st.topic] = key
+        self._calibrations = self._serve_calibrations(session)
         if not self._pubs:
             raise CaptureError(
                 f"{self.path} has no CDR channel to replay"
@@ -153,6 +157,21 @@ class McapReplayPublisher(SourceThread):
                 + "; check the recording with 'flightkit capture info'"
             )
         self.total = sum(st.count for st in self.reader.streams if st.topic in self._pubs)
+
+    def _serve_calibrations(self, session: zenoh.Session) -> list[CalibrationServer]:
+        """A server per replayed camera_info whose ``calibration.<camera>`` record gives a readout."""
+        servers: list[CalibrationServer] = []
+        for topic, key in self.key_of.items():
+            if not topic.endswith("/camera_info"):
+                continue
+            record = self.reader.metadata.get(f"calibration.{topic.rstrip('/').split('/')[-2]}", {})
+            if "readout_s" not in record or record.get("topic", topic).strip("/") != topic.strip("/"):
+                continue  # no readout recorded, or the record of another vehicle's camera of that name
+            try:
+                servers.append(CalibrationServer(session, calibration_key(key), {"readout_s": record["readout_s"]}))
+            except BusError as exc:
+                logger.warning("not serving the calibration of %s: %s", topic, exc)
+        return servers
 
     @property
     def keys(self) -> list[str]:
@@ -178,6 +197,8 @@ class McapReplayPublisher(SourceThread):
     def _close_outputs(self) -> None:
         for pub in self._pubs.values():
             pub.close()
+        for server in self._calibrations:
+            server.close()
 
 
 # --------------------------------------------------------------------------- datasets
@@ -185,7 +206,7 @@ class McapReplayPublisher(SourceThread):
 
 def _model(intr: Any, baseline_tx: float = 0.0) -> CameraModel:
     return CameraModel(
-        intr.width, intr.height, intr.fx, intr.fy, intr.cx, intr.cy, tuple(intr.dist), baseline_tx
+        intr.width, intr.height, intr.fx, intr.fy, intr.cx, intr.cy, tuple(intr.dist), baseline_tx, intr.readout_s
     )
 
 

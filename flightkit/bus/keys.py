@@ -4,6 +4,7 @@
 ``<ns>/camera/<name>/image``                 sensor_msgs/Image (name: color, depth, left, right)
 ``<ns>/camera/<name>/image/compressed``      sensor_msgs/CompressedImage
 ``<ns>/camera/<name>/camera_info``           sensor_msgs/CameraInfo
+``<ns>/camera/<name>/calibration``           queryable: the camera's calibration as JSON (readout_s, ...)
 ``<ns>/tf``                                  tf2_msgs/TFMessage (extrinsics, ground truth)
 ``<ns>/odometry/<estimator>``                VO output (PoseStamped)
 """
@@ -53,6 +54,9 @@ class Keys:
 
     def camera_info(self, camera: str) -> str:
         return f"{self.namespace}/camera/{check_name(camera, 'camera')}/camera_info"
+
+    def camera_calibration(self, camera: str) -> str:
+        return f"{self.namespace}/camera/{check_name(camera, 'camera')}/calibration"
 
     def tf(self) -> str:
         return f"{self.namespace}/tf"

@@ -13,6 +13,7 @@ reliable and block rather than drop.
 from __future__ import annotations
 
 import logging
+import math
 import threading
 from dataclasses import dataclass
 from typing import Any
@@ -22,6 +23,7 @@ import numpy as np
 import numpy.typing as npt
 import zenoh
 
+from flightkit.bus.camera_calibration import CalibrationServer
 from flightkit.bus.image_msgs import CameraInfo, CompressedImage, Image
 from flightkit.bus.keys import Keys
 from flightkit.bus.msg_base import Header
@@ -37,6 +39,7 @@ __all__ = [
     "CameraStreamSelection",
     "PosePublisher",
     "TfPublisher",
+    "check_readout_s",
     "is_best_effort",
     "optical_frame_id",
 ]
@@ -82,6 +85,24 @@ class CameraStreamSelection:
     jpeg_quality: int = 0
 
 
+def check_readout_s(value: object) -> float:
+    """A rolling-shutter readout (s) as a float, checked finite and >= 0.
+
+    Raises:
+        BusError: any other value.
+    """
+    try:
+        readout = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        readout = math.nan
+    if not (math.isfinite(readout) and readout >= 0.0):
+        raise BusError(
+            f"camera readout_s is {value!r}; give the rolling shutter's readout in seconds "
+            "(first row to last), or 0 for a global shutter"
+        )
+    return readout
+
+
 @dataclass(frozen=True, slots=True)
 class CameraModel:
     """Pinhole calibration of one published camera.
@@ -91,6 +112,12 @@ class CameraModel:
         fx_px, fy_px, cx_px, cy_px: intrinsics in pixels.
         dist: OpenCV (plumb_bob) distortion ``k1 k2 p1 p2 k3``; empty when rectified.
         baseline_tx: ``P[0,3] = -fx * baseline`` for the right camera of a rectified pair, else 0.
+        readout_s: rolling-shutter readout, first row to last, s; 0 for a global shutter (or unknown).
+            CameraInfo has no field for it: it is served on ``.../calibration``
+            (:mod:`flightkit.bus.camera_calibration`).
+
+    Raises:
+        BusError: a readout that is not a finite number >= 0.
     """
 
     width_px: int
@@ -101,6 +128,10 @@ class CameraModel:
     cy_px: float
     dist: tuple[float, ...] = ()
     baseline_tx: float = 0.0
+    readout_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "readout_s", check_readout_s(self.readout_s))
 
     def camera_info(self, stamp_ns: int, frame_id: str) -> CameraInfo:
         return CameraInfo.from_intrinsics(
@@ -114,12 +145,13 @@ class CameraModel:
             "width": str(self.width_px), "height": str(self.height_px), "fx": repr(self.fx_px),
             "fy": repr(self.fy_px), "cx": repr(self.cx_px), "cy": repr(self.cy_px),
             "distortion_model": "plumb_bob", "d": " ".join(repr(d) for d in self.dist),
-            "baseline_tx": repr(self.baseline_tx),
+            "baseline_tx": repr(self.baseline_tx), "readout_s": repr(self.readout_s),
         }
 
 
 class CameraStream:
-    """The publishers of one camera: image (+ optional JPEG) and camera_info.
+    """The publishers of one camera: image (+ optional JPEG) and camera_info, and its calibration
+    served on ``<ns>/camera/<name>/calibration`` (:mod:`flightkit.bus.camera_calibration`).
 
     Args:
         session: an open Zenoh session.
@@ -168,6 +200,7 @@ class CameraStream:
                 session, keys.camera_compressed(name), CompressedImage, reliable=False, drop_when_congested=True,
                 **stamping,
             )
+        self._calibration = CalibrationServer(session, keys.camera_calibration(name), model.as_metadata())
         self._buf = bytearray()
         self.frames = 0
 
@@ -221,6 +254,7 @@ class CameraStream:
         for pub in (self._image, self._info, self._jpeg):
             if pub is not None:
                 pub.close()
+        self._calibration.close()
 
 
 class PosePublisher:
