@@ -9,16 +9,20 @@ TUM RGB-D (https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats)::
                                centre in the world (or mocap) frame, at the mocap stamps
     OUT/associations.txt       "t_rgb rgb/... t_depth depth/..." (TUM associate.py on rgb.txt, depth.txt)
     OUT/associations_gt.txt    "t_rgb rgb/... t_gt tx ty tz qx qy qz qw" (associate.py on rgb.txt, groundtruth.txt)
-    OUT/camera.yaml            calibration (OpenCV FileStorage, ORB-SLAM style keys, DepthMapFactor 5000)
+    OUT/camera.yaml            calibration (OpenCV FileStorage, ORB-SLAM style keys, DepthMapFactor 5000,
+                               Camera.readout_s for a rolling shutter)
 
 EuRoC / ASL::
 
-    OUT/mav0/cam0/data/<ns>.png + data.csv + sensor.yaml   left (or colour as gray) camera, T_BS = T_body_camera
+    OUT/mav0/cam0/data/<ns>.png + data.csv + sensor.yaml   left (or colour as gray) camera, T_BS = T_body_camera,
+                                                            readout_s for a rolling shutter
     OUT/mav0/cam1/...                                       right camera of a stereo recording
     OUT/mav0/state_groundtruth_estimate0/data.csv           body pose (17 columns as EuRoC)
     OUT/mav0/body.yaml
 
 Timestamps are the header stamps (capture time), written exactly (9 decimals / integer ns).
+A camera's rolling-shutter readout (its ``calibration.<camera>`` record) is written only when > 0,
+so a global-shutter export is byte for byte what it was before readouts were recorded.
 Association follows TUM's ``associate.py`` (:func:`flightkit.datasets.tum.tum_associate`).
 
 Ground truth: the mocap body poses, placed in the **world** frame by the recording's own
@@ -105,6 +109,7 @@ class _Plan:
     depth_topic: str | None
     right_topic: str | None
     infos: dict[str, CameraInfo]
+    readouts_s: dict[str, float]  # camera -> rolling-shutter readout, s (0: global shutter)
     T_body_camera: Transform | None  # noqa: N815
     body_traj: Trajectory | None  # in the export frame
     counts: dict[str, int]
@@ -151,9 +156,11 @@ def _plan(
     if mocap_body is not None and mocap_body not in mocap:
         raise CaptureError(f"{rec.path} has no mocap body {mocap_body!r}; it has {sorted(mocap) or 'none'}")
     infos: dict[str, CameraInfo] = {}
+    readouts: dict[str, float] = {}
     for name, t in cams.items():
         if "camera_info" in t and (info := rec.first_camera_info(t["camera_info"])) is not None:
             infos[name] = info
+            readouts[name] = rec.camera_readout_s(t["camera_info"])
     body_traj = None
     if mocap_body is not None:
         body_traj = rec.pose_trajectory(mocap[mocap_body], frames, name=f"mocap {mocap_body}")
@@ -163,6 +170,7 @@ def _plan(
         images.get("depth") if camera != "depth" else None,
         images.get("right") if camera != "right" else None,
         infos,
+        readouts,
         calib.T_body_camera,
         body_traj,
         {s.topic: s.count for s in rec.streams},
@@ -387,7 +395,8 @@ def _export_tum(
                 for i, j in zip(ia, ib, strict=True)
             )
         )
-    write_tum_camera_yaml(out / "camera.yaml", plan.infos[plan.main], plan.infos.get("right"))
+    write_tum_camera_yaml(out / "camera.yaml", plan.infos[plan.main], plan.infos.get("right"),
+                          plan.readouts_s.get(plan.main, 0.0))
 
 
 def _export_euroc(
@@ -426,14 +435,16 @@ def _export_euroc(
         if topic == plan.main_topic:
             T_bs = T_bc  # noqa: N806
             info = plan.infos[plan.main]
+            readout_s = plan.readouts_s.get(plan.main, 0.0)
             report.images = len(stamps)
         else:
             info = plan.infos.get("right") or plan.infos[plan.main]
+            readout_s = plan.readouts_s.get("right" if "right" in plan.infos else plan.main, 0.0)
             baseline = -info.p[3] / info.p[0] if info.p[0] else 0.0
             T_bs = T_bc @ Transform(translation=np.array([baseline, 0.0, 0.0]))  # noqa: N806
             report.right_images = len(stamps)
         (d / "sensor.yaml").write_text(
-            euroc_sensor_yaml(info, T_bs, rate, f"{d.name} exported by flightkit from {src.name}", timing)
+            euroc_sensor_yaml(info, T_bs, rate, f"{d.name} exported by flightkit from {src.name}", timing, readout_s)
         )
     (mav0 / "body.yaml").write_text("# Body frame: the mocap rigid body (FLU)\nsensor_type: body\n")
     if body_traj is not None:

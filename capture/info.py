@@ -1,7 +1,8 @@
-"""What a recording holds: streams, counts, rates, duration, gaps and time spans."""
+"""What a recording holds: streams, counts, rates, duration, gaps, time spans and rolling-shutter readouts."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -47,12 +48,20 @@ class StreamStats:
 
 @dataclass
 class RecordingInfo:
+    """A recording's summary.
+
+    Attributes:
+        readouts_s: camera_info topic -> the camera's rolling-shutter readout (s), for the cameras
+            recorded with one > 0 (NaN: the recorded value is malformed).
+    """
+
     path: Path
     size_bytes: int
     profile: str
     library: str
     streams: list[StreamStats]
     metadata: dict[str, dict[str, str]]
+    readouts_s: dict[str, float] = field(default_factory=dict)
 
     def by_vehicle(self) -> dict[str, list[StreamStats]]:
         """The streams grouped by vehicle namespace (first element of the topic), sorted."""
@@ -114,4 +123,13 @@ def recording_info(path: str | Path, gap_factor: float = 3.0) -> RecordingInfo:
         if sq and sq[-1] > sq[0]:
             info.missed_seq = max(0, (sq[-1] - sq[0] + 1) - len(set(sq)))
         streams.append(info)
-    return RecordingInfo(p, p.stat().st_size, rec.profile, rec.library, streams, rec.metadata)
+    readouts: dict[str, float] = {}
+    for topics in rec.cameras().values():
+        if "camera_info" in topics:
+            try:
+                readout = rec.camera_readout_s(topics["camera_info"])
+            except DatasetError:
+                readout = math.nan
+            if not readout <= 0.0:
+                readouts[topics["camera_info"]] = readout
+    return RecordingInfo(p, p.stat().st_size, rec.profile, rec.library, streams, rec.metadata, readouts)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -18,7 +19,8 @@ logger = logging.getLogger(__name__)
 def register(sub: Any) -> None:
     p = sub.add_parser("capture", help="inspect or recover MCAP recordings")
     cs = p.add_subparsers(dest="capture_command", metavar="SUBCOMMAND", required=True)
-    info = cs.add_parser("info", help="streams, counts, rates, duration, gaps and time span of each stream")
+    info = cs.add_parser("info", help="streams, counts, rates, duration, gaps and time span of each stream, "
+                         "and the cameras' rolling-shutter readouts")
     info.add_argument("recording", help="an .mcap file")
     info.add_argument("--gap-factor", type=float, default=3.0, help="a gap is a silence longer than this many periods")
     info.add_argument("--json", action="store_true", help="print JSON instead of a table")
@@ -96,6 +98,7 @@ def print_info(recording: str | Path, *, gap_factor: float = 3.0, as_json: bool 
                     "duration_s": info.duration_s,
                     "messages": info.messages,
                     "metadata": info.metadata,
+                    "readouts_s": {k: None if math.isnan(v) else v for k, v in info.readouts_s.items()},
                     "vehicles": sorted(info.by_vehicle()),
                     "streams": [
                         {
@@ -139,6 +142,9 @@ def print_info(recording: str | Path, *, gap_factor: float = 3.0, as_json: bool 
                 str(len(s.gaps)), str(s.missed_seq),
             )
         console.print(table)
+    for topic, readout in sorted(info.readouts_s.items()):
+        what = "malformed (see its calibration.<camera> record)" if math.isnan(readout) else f"{readout * 1e3:.4g} ms"
+        console.print(f"rolling shutter: {topic.rsplit('/', 1)[0]} readout {what}", highlight=False)
     if info.metadata:
         console.print("metadata: " + ", ".join(sorted(info.metadata)))
 

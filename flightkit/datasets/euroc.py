@@ -4,7 +4,8 @@ Layout::
 
     <seq>/mav0/cam0/data.csv        "#timestamp [ns],filename"
     <seq>/mav0/cam0/data/<ns>.png   raw (distorted) 752x480 grayscale
-    <seq>/mav0/cam0/sensor.yaml     T_BS (camera in body), intrinsics fu fv cu cv, radial-tangential
+    <seq>/mav0/cam0/sensor.yaml     T_BS (camera in body), intrinsics fu fv cu cv, radial-tangential,
+                                    and flightkit's optional readout_s (rolling shutter, s)
     <seq>/mav0/cam1/...             right camera, same files
     <seq>/mav0/state_groundtruth_estimate0/data.csv   body pose in the world (ASL csv), or
     <seq>/groundtruth_tum.txt                         the same as a TUM file
@@ -82,7 +83,7 @@ def _yaml_numbers(fs: cv2.FileStorage, key: str, path: Path, count: int | None =
 
 
 def read_euroc_camera(path: Path) -> EurocCamera:
-    """Parse an EuRoC camera ``sensor.yaml``.
+    """Parse an EuRoC camera ``sensor.yaml`` (with flightkit's ``readout_s`` when present, else 0).
 
     Raises:
         DatasetError: missing keys, or a camera model other than pinhole/radial-tangential.
@@ -101,9 +102,11 @@ def read_euroc_camera(path: Path) -> EurocCamera:
                 "only radial-tangential (OpenCV k1 k2 p1 p2) is"
             )
         dist = tuple(_yaml_numbers(fs, "distortion_coefficients", path))
+        readout = fs.getNode("readout_s")
+        readout_s = 0.0 if readout.empty() else readout.real()
     finally:
         fs.release()
-    return EurocCamera(CameraIntrinsics(fu, fv, cu, cv, width, height, dist), Transform.from_matrix(T_BS))
+    return EurocCamera(CameraIntrinsics(fu, fv, cu, cv, width, height, dist, readout_s), Transform.from_matrix(T_BS))
 
 
 def stereo_rectification(left: EurocCamera, right: EurocCamera) -> StereoRectification:
@@ -127,7 +130,9 @@ def stereo_rectification(left: EurocCamera, right: EurocCamera) -> StereoRectifi
     maps_right = cv2.initUndistortRectifyMap(
         right.intrinsics.K, right.intrinsics.dist_array, R2, P2, size, cv2.CV_32FC1
     )
-    rectified = CameraIntrinsics(P1[0, 0], P1[1, 1], P1[0, 2], P1[1, 2], size[0], size[1])
+    rectified = CameraIntrinsics(  # rectification keeps the rows' order: the readout stays the left camera's
+        P1[0, 0], P1[1, 1], P1[0, 2], P1[1, 2], size[0], size[1], readout_s=left.intrinsics.readout_s
+    )
     baseline = float(-P2[0, 3] / P2[0, 0])
     return StereoRectification(
         left_raw=left.intrinsics,
@@ -271,11 +276,12 @@ def _rot4(R: np.ndarray) -> np.ndarray:  # noqa: N803
 
 def euroc_sensor_yaml(
     info: CameraInfo, T_body_camera: Transform, rate_hz: float, comment: str,  # noqa: N803
-    timing: CalibrationResult | None = None,
+    timing: CalibrationResult | None = None, readout_s: float = 0.0,
 ) -> str:
     """A camera's ``sensor.yaml`` (``T_BS`` = ``T_body_camera``, pinhole, radial-tangential), with
     the measured camera-to-mocap time offset and drift of ``timing`` when given (the exported
-    ground truth is already on the camera's clock, so Kalibr's ``timeshift_cam_imu`` left is 0)."""
+    ground truth is already on the camera's clock, so Kalibr's ``timeshift_cam_imu`` left is 0),
+    and an extra ``readout_s`` key (rolling shutter, s) only when ``readout_s`` > 0."""
     k = info.k
     d = (list(info.d) + [0.0] * 4)[:4]
     T = T_body_camera.as_matrix().reshape(-1)  # noqa: N806
@@ -295,6 +301,8 @@ def euroc_sensor_yaml(
         "distortion_model: radial-tangential\n"
         "distortion_coefficients: [" + ", ".join(repr(float(v)) for v in d) + "]\n"
     )
+    if readout_s > 0:
+        text += f"readout_s: {float(readout_s)!r} # rolling-shutter readout, first row to last, s (flightkit)\n"
     if timing is not None and timing.time_offset_ms is not None:
         text += (
             "\n# Time, measured by flightkit calibrate: camera stamp - mocap stamp = offset + drift * (t - ref).\n"

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import re
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
@@ -334,6 +335,29 @@ class RecordingReader:
             raise
         except Exception as exc:
             raise DatasetError(f"reading {self.path} failed ({exc}); the file may be damaged") from exc
+
+    def camera_readout_s(self, info_topic: str) -> float:
+        """The rolling-shutter readout (s) recorded for the camera of ``info_topic``: ``readout_s``
+        of its ``calibration.<camera>`` record; 0 (a global shutter) when the record has none.
+
+        Raises:
+            DatasetError: the recorded value is not a number >= 0 (names the record and the fix).
+        """
+        name = f"calibration.{info_topic.rstrip('/').split('/')[-2]}"
+        record = self.metadata.get(name, {})
+        text = record.get("readout_s")
+        if text is None or record.get("topic", info_topic).strip("/") != info_topic.strip("/"):
+            return 0.0  # none recorded, or the record is another vehicle's camera of that name
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not (math.isfinite(value) and value >= 0.0):
+            raise DatasetError(
+                f"recording {self.path}: record {name} gives readout_s {text!r}, not a readout in seconds >= 0; "
+                "correct the record (flightkit.datasets.mcap_metadata.with_metadata) or remove it"
+            )
+        return value
 
     def first_camera_info(self, topic: str) -> CameraInfo | None:
         """The first camera_info message on ``topic`` (None when there is none)."""

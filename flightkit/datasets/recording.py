@@ -9,7 +9,9 @@ What is read (topic names as the flightkit recorder writes them, ``/<ns>/...``):
 
 The main camera is ``camera`` (default: the first of color, left, gray, infra1, image,
 else any non-depth camera); depth is the camera named ``depth`` (16UC1 in millimetres or
-32FC1 in metres) and the stereo partner ``right``. Frames are the main camera's messages,
+32FC1 in metres) and the stereo partner ``right``. A camera's rolling-shutter readout comes from
+the recording's ``calibration.<camera>`` record (0, a global shutter, when it has none, as in
+recordings made before readouts were recorded). Frames are the main camera's messages,
 stamped with their header stamps; depth and right images are attached when their stamp
 lies within ``max_diff_s`` (20 ms).
 
@@ -65,7 +67,7 @@ class McapSequence:
             the recording's own record.
 
     Raises:
-        DatasetError: unreadable recording, no camera, no intrinsics, unknown body.
+        DatasetError: unreadable recording, no camera, no intrinsics, a malformed readout record, unknown body.
     """
 
     def __init__(
@@ -151,9 +153,10 @@ class McapSequence:
                 f"recording {path} lacks camera {camera}'s camera_info (…/camera/{camera}/camera_info); "
                 "intrinsics are needed to use the images"
             )
-        self.intrinsics = _intrinsics(infos[camera])
+        readout = self.reader.camera_readout_s
+        self.intrinsics = _intrinsics(infos[camera], readout(info_topics[camera]))
         self.depth_intrinsics = (
-            _intrinsics(infos["depth"])
+            _intrinsics(infos["depth"], readout(info_topics["depth"]))
             if "depth" in self._topics and "depth" in infos
             else (self.intrinsics if "depth" in self._topics else None)
         )
@@ -253,9 +256,9 @@ def _image_topic(topics: dict[str, str]) -> str:
     return topics.get("image") or topics["image/compressed"]
 
 
-def _intrinsics(info: CameraInfo) -> CameraIntrinsics:
+def _intrinsics(info: CameraInfo, readout_s: float) -> CameraIntrinsics:
     k = info.k
-    return CameraIntrinsics(k[0], k[4], k[2], k[5], info.width, info.height, tuple(info.d))
+    return CameraIntrinsics(k[0], k[4], k[2], k[5], info.width, info.height, tuple(info.d), readout_s)
 
 
 def open_mcap(path: Path, **options: object) -> McapSequence:

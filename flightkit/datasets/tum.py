@@ -308,8 +308,11 @@ def to_tum_depth(arr: npt.NDArray[Any], encoding: str) -> npt.NDArray[np.uint16]
     return np.clip(np.rint(scaled), 0, 65535).astype(np.uint16)
 
 
-def write_tum_camera_yaml(path: Path, info: CameraInfo, right: CameraInfo | None = None) -> None:
-    """Write ``camera.yaml`` (OpenCV FileStorage, ORB-SLAM style keys, DepthMapFactor 5000)."""
+def write_tum_camera_yaml(
+    path: Path, info: CameraInfo, right: CameraInfo | None = None, readout_s: float = 0.0
+) -> None:
+    """Write ``camera.yaml`` (OpenCV FileStorage, ORB-SLAM style keys, DepthMapFactor 5000), with
+    ``Camera.readout_s`` (rolling shutter, s) only when ``readout_s`` > 0, as :func:`read_tum_camera_yaml` reads it."""
     k = info.k
     d = list(info.d) + [0.0] * (5 - len(info.d))
     lines = [
@@ -333,6 +336,8 @@ def write_tum_camera_yaml(path: Path, info: CameraInfo, right: CameraInfo | None
     ]
     if right is not None and right.p[0]:
         lines.append(f"Camera.bf: {-right.p[3]!r}")
+    if readout_s > 0:
+        lines.append(f"Camera.readout_s: {float(readout_s)!r}")
     path.write_text("\n".join(lines) + "\n")
 
 
