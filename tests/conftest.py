@@ -59,6 +59,7 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 PACED_MODULES = frozenset({
     "tests/integration/test_bus.py",
     "tests/integration/test_capture_cli.py",
+    "tests/integration/test_capture_readout.py",
     "tests/integration/test_capture_sources.py",
     "tests/integration/test_clock_exchange.py",
     "tests/integration/test_closed_loop.py",

@@ -24,6 +24,8 @@ from flightkit.bus.session import open_session
 from flightkit.clock import LockstepClock
 from flightkit.config import BusConfig, CameraConfig, LabConfig, load_config
 from flightkit.datasets import open_sequence, read_tum
+from flightkit.datasets.mcap_metadata import with_metadata
+from flightkit.datasets.mcap_reader import RecordingReader
 from flightkit.datasets.tum import read_tum_camera_yaml
 from flightkit.frames import Transform
 from flightkit.sim.camera_publisher import SimCameraPublisher
@@ -77,6 +79,7 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, LabConfig
             if k < ticks:
                 clock.advance(1.0 / MOCAP_HZ)
         frames = cam.frames_published
+        wait(lambda: len(rec.calibrated) == 4, 10, "the cameras' calibration records")  # before they go away
         mocap.stop()
         cam.stop()
         rec.wait_for(
@@ -205,6 +208,7 @@ def test_export_tum_follows_the_format_and_loads_back(recording: tuple[Path, Lab
     assert len((dst / "associations_gt.txt").read_text().splitlines()) == frames
     # Loads back as an estimator input, with the exported calibration (read from camera.yaml).
     K = read_tum_camera_yaml(dst)  # noqa: N806
+    assert "readout_s" not in (dst / "camera.yaml").read_text() and K.readout_s == 0.0  # global shutter: as before
     fx, fy, cx, cy = lab.camera.intrinsics()
     assert (K.fx, K.fy, K.cx, K.cy, K.width, K.height) == (fx, fy, cx, cy, 320, 240)
     seq = open_sequence(dst)
@@ -248,8 +252,9 @@ def test_export_euroc_follows_the_format_and_loads_back(recording: tuple[Path, L
     gt_lines = (dst / "mav0" / "state_groundtruth_estimate0" / "data.csv").read_text().splitlines()
     assert gt_lines[0].startswith("#timestamp") and all(len(r.split(",")) == 17 for r in gt_lines[1:])
     assert len(gt_lines) - 1 == int(SIM_SECONDS * MOCAP_HZ) + 1
+    assert not any("readout_s" in (dst / "mav0" / c / "sensor.yaml").read_text() for c in ("cam0", "cam1"))
     seq = open_sequence(dst)  # rectified stereo by default: the pair is already rectified
-    assert len(seq) == frames
+    assert len(seq) == frames and seq.intrinsics.readout_s == 0.0
     assert seq.baseline_m == pytest.approx(lab.camera.stereo_baseline_m, rel=1e-6)
     frame = next(iter(seq.frames()))
     assert frame.right_gray is not None and frame.T_world_camera is not None
@@ -264,12 +269,58 @@ def test_mcap_sequence_reads_the_recording_in_the_world_frame(recording: tuple[P
     out, lab, frames = recording
     seq = open_sequence(out)  # frames and extrinsics from the recording's own metadata
     assert len(seq) == frames and seq.depth_intrinsics is not None
+    # The simulated camera is a global shutter and says so over the bus.
+    assert RecordingReader(out).metadata["calibration.color"]["readout_s"] == "0.0"
+    assert seq.intrinsics.readout_s == 0.0 and seq.depth_intrinsics.readout_s == 0.0
     assert seq.baseline_m == pytest.approx(lab.camera.stereo_baseline_m)
     gt = seq.groundtruth()
     t0 = LockstepClock().time_ns()
     i = len(gt) // 3
     expected = truth_at((int(gt.stamps_ns[i]) - t0) * 1e-9) @ lab.camera.T_body_camera.to_transform()
     assert gt.transform(i).almost_equal(expected, 1e-8, 1e-8)
+
+
+def with_readout(src: Path, dst: Path, readout_s: str, cameras: tuple[str, ...]) -> Path:
+    """A copy of ``src`` whose cameras' calibration records give ``readout_s``, as a recorder writes
+    them when the cameras answer with one."""
+    meta = RecordingReader(src).metadata
+    for cam in cameras:
+        with_metadata(src, dst, f"calibration.{cam}", {**meta[f"calibration.{cam}"], "readout_s": readout_s},
+                      allow_overwrite=True)
+        src = dst
+    return dst
+
+
+def test_exports_keep_the_readout_and_load_it_back(recording: tuple[Path, LabConfig, int], tmp_path: Path) -> None:
+    out, _lab, frames = recording
+    rs = with_readout(out, tmp_path / "rs.mcap", "0.02", ("color", "left", "right"))
+    tum = tmp_path / "tum"
+    export_recording(rs, tum, "tum")
+    assert "Camera.readout_s: 0.02\n" in (tum / "camera.yaml").read_text()
+    assert read_tum_camera_yaml(tum).readout_s == 0.02 and open_sequence(tum).intrinsics.readout_s == 0.02
+    euroc = tmp_path / "euroc"
+    rep = export_recording(rs, euroc, "euroc")
+    assert rep.camera == "left" and rep.right_images == frames
+    for cam in ("cam0", "cam1"):
+        assert "\nreadout_s: 0.02 #" in (euroc / "mav0" / cam / "sensor.yaml").read_text(), cam
+    assert open_sequence(euroc).intrinsics.readout_s == 0.02  # rectified: the left camera's rows, same timing
+    assert open_sequence(euroc, rectify=False, stereo=False).intrinsics.readout_s == 0.02
+
+
+def test_vo_run_uses_the_recorded_readout(recording: tuple[Path, LabConfig, int], tmp_path: Path) -> None:
+    """`flightkit vo run` on a recording with a readout: the same trajectory as `--readout-ms` on the
+    recording without one, and not the global-shutter trajectory."""
+    from flightkit.cli.main import main
+
+    out, _lab, _frames = recording
+    rs = with_readout(out, tmp_path / "rs.mcap", "0.02", ("color",))
+    runs = {"recorded": [str(rs)], "given": [str(out), "--readout-ms", "20"], "global": [str(out)]}
+    for name, args in runs.items():
+        assert main(["vo", "run", *args, "--method", "rgbd-pnp", "-o", str(tmp_path / f"{name}.txt")]) == 0
+    recorded, given, glob = (read_tum(tmp_path / f"{n}.txt") for n in runs)
+    assert np.array_equal(recorded.stamps_ns, given.stamps_ns)
+    assert np.array_equal(recorded.positions, given.positions) and np.array_equal(recorded.quats_wxyz, given.quats_wxyz)
+    assert np.abs(recorded.positions - glob.positions).max() > 1e-4  # the readout moved it (by ~2 mm here)
 
 
 def test_vo_runs_on_a_recording_cut_between_colour_and_depth(

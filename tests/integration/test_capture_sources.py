@@ -31,9 +31,11 @@ from flightkit.bus.pose_msgs import PoseStamped, TFMessage, TransformStamped
 from flightkit.bus.session import open_session
 from flightkit.clock import SimClock, WallClock
 from flightkit.config import BusConfig
-from flightkit.datasets import read_tum
+from flightkit.datasets import open_sequence, read_tum
+from flightkit.datasets.mcap_metadata import with_metadata
 from flightkit.datasets.mcap_reader import RecordingReader
 from flightkit.datasets.mcap_writer import FastMcapWriter
+from flightkit.datasets.tum import read_tum_camera_yaml
 from flightkit.frames import Transform, WorldFrames
 from flightkit.mocap.bus_source import BusMocapSource
 from flightkit.mocap.motioncapture_source import MotionCaptureSource, mock_rigid_bodies
@@ -167,7 +169,7 @@ def test_fast_writer_files_read_back_everywhere(tmp_path: Path, compression: str
 # --------------------------------------------------------------------------- OpenCV: video file
 
 
-def make_video(path: Path, frames: int, w: int = 160, h: int = 120, fps: float = 30.0) -> None:
+def make_video(path: Path, frames: int, w: int = 160, h: int = 120, fps: float = 30.0, **calibration: float) -> None:
     vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps, (w, h))
     assert vw.isOpened(), "OpenCV cannot write MJPG here"
     for i in range(frames):
@@ -187,6 +189,7 @@ def make_video(path: Path, frames: int, w: int = 160, h: int = 120, fps: float =
                 "width": w,
                 "height": h,
                 "dist": [0.1, -0.05, 0.0, 0.0, 0.0],
+                **calibration,
             }
         )
     )
@@ -255,6 +258,9 @@ def test_video_file_frames_decode(sessions: tuple[object, object], tmp_path: Pat
     assert {st.topic: st.capture_stamp for st in RecordingReader(out).streams}["/" + image_key] == "host"  # a file
     info = CameraInfo.decode(msgs["/uav1/camera/color/camera_info"][0][1])
     assert info.k[0] == 150.0 and info.k[4] == 151.0 and info.k[2] == 79.5 and info.d[:2] == (0.1, -0.05)
+    # A calibration without a readout: the camera says 0, and the recording reads as a global shutter.
+    assert RecordingReader(out).metadata["calibration.color"]["readout_s"] == "0.0"
+    assert open_sequence(out).intrinsics.readout_s == 0.0
 
 
 def test_missing_device_retries_without_raising(
@@ -281,18 +287,26 @@ def test_missing_device_retries_without_raising(
 def test_mcap_replay_gives_identical_payloads(sessions: tuple[object, object], tmp_path: Path) -> None:
     pub_s, rec_s = sessions
     src = tmp_path / "src.mcap"
-    write_lab_recording(src)
+    write_lab_recording(tmp_path / "plain.mcap")
+    # The colour camera recorded with a rolling-shutter readout: the replay serves it again.
+    with_metadata(tmp_path / "plain.mcap", src, "calibration.color",
+                  {"topic": "uav1/camera/color/camera_info", "readout_s": "0.02"})
     want = messages(src)
     replay = McapReplayPublisher(pub_s, src, SimClock(speed=10.0))
     assert replay.total == sum(len(v) for v in want.values())
     out = tmp_path / "replayed.mcap"
+    infos = {"uav1/camera/color/camera_info", "uav1/camera/depth/camera_info"}
     with BusRecorder(rec_s, out, ["uav1/**"], compression="lz4") as rec:
         wait(lambda: replay.has_subscribers, 10, "the recorder to subscribe")
         t0 = time.monotonic()
         with replay:
             assert replay.wait_finished(30) == replay.total
-        wall_s = time.monotonic() - t0
+            wall_s = time.monotonic() - t0
+            wait(lambda: rec.calibrated == infos, 10, "the calibration records")
         rec.wait_for(lambda st: sum(s.count for s in st.values()) >= replay.total, 10)
+    replayed = RecordingReader(out)
+    assert replayed.camera_readout_s("/uav1/camera/color/camera_info") == 0.02
+    assert "readout_s" not in replayed.metadata["calibration.depth"]  # none recorded, none served
     got = messages(out)
     assert set(got) == set(want)
     for topic in want:
@@ -312,10 +326,14 @@ def tum_rows(path: Path) -> list[list[str]]:
 def test_tum_folder_round_trips(sessions: tuple[object, object], tmp_path: Path) -> None:
     pub_s, rec_s = sessions
     src = tmp_path / "src.mcap"
-    write_lab_recording(src)
+    write_lab_recording(tmp_path / "plain.mcap")
+    with_metadata(tmp_path / "plain.mcap", src, "calibration.color",
+                  {"topic": "uav1/camera/color/camera_info", "readout_s": "0.02"})
     first = tmp_path / "tum1"
     rep1 = export_recording(src, first, "tum")
     assert rep1.images == 12 and rep1.depth_images == 12 and rep1.groundtruth_poses == 63
+    assert "Camera.readout_s: 0.02\n" in (first / "camera.yaml").read_text()
+    assert read_tum_camera_yaml(first).readout_s == 0.02  # what export writes, the TUM loader reads
     replay = DatasetReplayPublisher(pub_s, Keys("uav1"), first, SimClock(speed=20.0), gt_body="uav1")
     assert replay.main_name == "color" and replay.depth is not None
     out = tmp_path / "replayed.mcap"
@@ -323,6 +341,7 @@ def test_tum_folder_round_trips(sessions: tuple[object, object], tmp_path: Path)
         wait(lambda: replay.has_subscribers, 10, "the recorder to subscribe")
         with replay:
             assert replay.wait_finished(30) == 12
+            wait(lambda: "uav1/camera/color/camera_info" in rec.calibrated, 10, "the calibration record")
         assert replay.poses_published == 63
         rec.wait_for(
             lambda st: (
@@ -350,6 +369,7 @@ def test_tum_folder_round_trips(sessions: tuple[object, object], tmp_path: Path)
     assert (first / "camera.yaml").read_text().split("\n")[3:] == (second / "camera.yaml").read_text().split(
         "\n"
     )[3:]
+    assert open_sequence(out).intrinsics.readout_s == 0.02  # dataset -> bus -> recording
 
 
 def test_euroc_stereo_replay_publishes_the_rectified_pair(
