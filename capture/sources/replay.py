@@ -159,18 +159,18 @@ class McapReplayPublisher(SourceThread):
         self.total = sum(st.count for st in self.reader.streams if st.topic in self._pubs)
 
     def _serve_calibrations(self, session: zenoh.Session) -> list[CalibrationServer]:
-        """A server per replayed camera_info whose ``calibration.<camera>`` record gives a readout."""
+        """A server per replayed camera recorded with a readout > 0 (its ``calibration.<camera>`` record)."""
         servers: list[CalibrationServer] = []
         for topic, key in self.key_of.items():
             if not topic.endswith("/camera_info"):
                 continue
-            record = self.reader.metadata.get(f"calibration.{topic.rstrip('/').split('/')[-2]}", {})
-            if "readout_s" not in record or record.get("topic", topic).strip("/") != topic.strip("/"):
-                continue  # no readout recorded, or the record of another vehicle's camera of that name
             try:
-                servers.append(CalibrationServer(session, calibration_key(key), {"readout_s": record["readout_s"]}))
-            except BusError as exc:
-                logger.warning("not serving the calibration of %s: %s", topic, exc)
+                readout_s = self.reader.camera_readout_s(topic)
+            except DatasetError as exc:
+                logger.warning("replaying %s without its readout: %s", topic, exc)
+                continue
+            if readout_s > 0:
+                servers.append(CalibrationServer(session, calibration_key(key), {"readout_s": repr(readout_s)}))
         return servers
 
     @property
