@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import re
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
@@ -42,6 +41,7 @@ from flightkit.bus.cdr import CdrReader
 from flightkit.bus.image_msgs import CameraInfo, CompressedImage, Image
 from flightkit.bus.msg_base import Header
 from flightkit.bus.pose_msgs import PoseStamped, TFMessage
+from flightkit.bus.streams import check_readout_s
 from flightkit.calibration.clock_sync import CLOCK_OFFSETS_RECORD, ClockOffsetEstimate, offsets_from_metadata
 from flightkit.calibration.result import METADATA_RECORD, CalibrationResult
 from flightkit.datasets.trajectory import Trajectory
@@ -349,15 +349,12 @@ class RecordingReader:
         if text is None or record.get("topic", info_topic).strip("/") != info_topic.strip("/"):
             return 0.0  # none recorded, or the record is another vehicle's camera of that name
         try:
-            value = float(text)
-        except ValueError:
-            value = math.nan
-        if not (math.isfinite(value) and value >= 0.0):
+            return check_readout_s(text)
+        except BusError:
             raise DatasetError(
                 f"recording {self.path}: record {name} gives readout_s {text!r}, not a readout in seconds >= 0; "
                 "correct the record (flightkit.datasets.mcap_metadata.with_metadata) or remove it"
-            )
-        return value
+            ) from None
 
     def first_camera_info(self, topic: str) -> CameraInfo | None:
         """The first camera_info message on ``topic`` (None when there is none)."""
