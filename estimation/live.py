@@ -2,7 +2,8 @@
 
 :class:`LiveVo` subscribes to a vehicle's colour and depth images and the colour
 ``camera_info`` (``<ns>/camera/color/image``, ``<ns>/camera/depth/image``,
-``<ns>/camera/color/camera_info``), pairs colour and depth by stamp, and runs
+``<ns>/camera/color/camera_info``; the camera's rolling-shutter readout is asked for on its
+``calibration`` key, :mod:`flightkit.bus.camera_calibration`), pairs colour and depth by stamp, and runs
 :class:`~estimation.pipeline.VisualOdometry` on its own thread, one frame at a time. When the
 estimator falls behind, it works on the newest pair and drops the older ones (counted in
 :attr:`LiveVoStats.frames_dropped`), so its output never lags by more than one frame.
@@ -39,6 +40,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import dataclasses
 import logging
 import math
 import threading
@@ -55,12 +57,14 @@ import numpy.typing as npt
 from estimation.live_config import LiveVoConfig, external_pose_from_frame
 from estimation.live_inputs import FramePairer, intrinsics_from_camera_info
 from estimation.pipeline import FramePose, Method, VisualOdometry, VoOptions, warm_up
+from flightkit.bus.camera_calibration import ask_calibration, calibration_key
 from flightkit.bus.image_msgs import CameraInfo, Image
 from flightkit.bus.keys import Keys
 from flightkit.bus.pose_msgs import PoseStamped
+from flightkit.bus.streams import check_readout_s
 from flightkit.clock import Clock
 from flightkit.datasets.base import CameraIntrinsics
-from flightkit.errors import EstimationError
+from flightkit.errors import BusError, EstimationError
 from flightkit.frames import Transform
 from flightkit.link.base import ExternalPose, VehicleLink
 
@@ -179,6 +183,7 @@ class LiveVo:
         self._pairer = FramePairer(self.config.pair_tolerance_ns)
         self._pending: tuple[int, bytes, bytes] | None = None
         self._intrinsics: CameraIntrinsics | None = None
+        self._asking_camera = False  # the camera's calibration (its readout) was asked for
         self._initial: Callable[[int], Transform | None] | None = None
         self._vo: VisualOdometry | None = None
         self._stop = threading.Event()
@@ -295,6 +300,13 @@ class LiveVo:
             self._cond.notify_all()
 
     @property
+    def camera(self) -> CameraIntrinsics | None:
+        """The camera's intrinsics (with its rolling-shutter readout) once its camera_info and
+        calibration are in; None before."""
+        with self._lock:
+            return self._intrinsics
+
+    @property
     def started(self) -> bool:
         """True once the VO has produced its first estimate."""
         return self._vo is not None
@@ -336,17 +348,44 @@ class LiveVo:
     # ------------------------------------------------------------------ Zenoh threads
 
     def _on_info(self, s: Any) -> None:
-        if self._intrinsics is not None:
-            return
+        with self._lock:
+            if self._intrinsics is not None or self._asking_camera:
+                return
         try:
             intr = intrinsics_from_camera_info(CameraInfo.decode(s.payload))
         except Exception:
             logger.exception("live VO: cannot use the camera_info on %s", s.key)
             return
+        with self._lock:
+            if self._asking_camera:
+                return
+            self._asking_camera = True
+        # CameraInfo has no rolling-shutter readout: the camera serves it on its calibration key.
+        try:
+            key = calibration_key(str(s.key))
+        except BusError:
+            self._use_camera(intr, {})
+            return
+        ask_calibration(self.session, key, lambda fields: self._use_camera(intr, fields))
+
+    def _use_camera(self, intr: CameraIntrinsics, fields: dict[str, str]) -> None:
+        """Zenoh thread: the camera's calibration answer is in (``{}``: none): its ``readout_s``
+        joins the camera_info's intrinsics (``VoOptions.readout_s`` still overrides it)."""
+        if "readout_s" in fields:
+            try:
+                intr = dataclasses.replace(intr, readout_s=check_readout_s(fields["readout_s"]))
+            except BusError as exc:
+                logger.warning("live VO: ignoring the camera's readout: %s", exc)
         with self._cond:
             self._intrinsics = intr
             self._cond.notify_all()
-        logger.info("live VO: camera %dx%d, fx %.1f px", intr.width, intr.height, intr.fx)
+        logger.info(
+            "live VO: camera %dx%d, fx %.1f px, %s",
+            intr.width,
+            intr.height,
+            intr.fx,
+            f"rolling shutter {intr.readout_s * 1e3:.3g} ms" if intr.readout_s > 0 else "global shutter",
+        )
 
     def _on_color(self, s: Any) -> None:
         self._add(True, s)

@@ -1,4 +1,5 @@
-"""A camera's rolling-shutter readout from its calibration, over the bus, into a recording and back.
+"""A camera's rolling-shutter readout from its calibration, over the bus, into a recording and back,
+and into live VO.
 
 A source publishes on one Zenoh session and a BusRecorder on a second one (joined over loopback TCP)
 writes the MCAP file; the camera's answer to the calibration query lands in ``calibration.<camera>``
@@ -7,6 +8,7 @@ writes the MCAP file; the camera's answer to the calibration query lands in ``ca
 
 from __future__ import annotations
 
+import asyncio
 import json
 from pathlib import Path
 
@@ -101,3 +103,43 @@ def test_a_bad_calibration_readout_is_refused(tmp_path: Path) -> None:
                                  "readout_s": -0.02}))
     with pytest.raises(CaptureError, match=r"cal\.json: camera readout_s is -0\.02; give the rolling shutter"):
         camera_model_from_calibration(calib)
+
+
+@pytest.mark.parametrize("served", [0.02, None])
+def test_live_vo_takes_the_readout_the_camera_serves(sessions: tuple[object, object], served: float | None) -> None:
+    """Live VO asks the camera for its calibration at its first camera_info: a flightkit camera's
+    readout joins the intrinsics; a driver that serves none (camera_info only) is a global shutter."""
+    from estimation.live import LiveVo
+    from flightkit.bus.image_msgs import CameraInfo
+    from flightkit.bus.pubsub import BusPublisher
+    from flightkit.bus.streams import CameraModel, CameraStream
+    from flightkit.frames import Transform
+
+    pub_s, vo_s = sessions
+    keys = Keys("uav1")
+    model = CameraModel(160, 120, 150.0, 150.0, 80.0, 60.0, readout_s=served or 0.0)
+
+    async def main() -> object:
+        async with LiveVo(vo_s, keys, SimClock(), T_body_camera=Transform()) as vo:
+            if served is not None:
+                cam = CameraStream(pub_s, keys, "color", model, "rgb8")
+                frame = np.zeros((120, 160, 3), np.uint8)
+                send = lambda i: cam.publish(i, frame)  # noqa: E731
+            else:  # another driver: camera_info, no calibration key
+                info = BusPublisher(pub_s, keys.camera_info("color"), CameraInfo, reliable=True)
+                cam = info
+                send = lambda i: info.put(model.camera_info(i, "color_optical").encode(), i)  # noqa: E731
+            try:
+                for i in range(1, 2000):
+                    send(i)
+                    if vo.camera is not None:
+                        break
+                    await asyncio.sleep(0.005)
+            finally:
+                cam.close()
+            assert vo.camera is not None, "live VO never got the camera"
+            return vo.camera
+
+    camera = asyncio.run(main())
+    assert camera.fx == 150.0 and camera.width == 160  # type: ignore[attr-defined]
+    assert camera.readout_s == (served or 0.0)  # type: ignore[attr-defined]
