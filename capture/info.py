@@ -124,12 +124,11 @@ def recording_info(path: str | Path, gap_factor: float = 3.0) -> RecordingInfo:
             info.missed_seq = max(0, (sq[-1] - sq[0] + 1) - len(set(sq)))
         streams.append(info)
     readouts: dict[str, float] = {}
-    for topics in rec.cameras().values():
-        if "camera_info" in topics:
-            try:
-                readout = rec.camera_readout_s(topics["camera_info"])
-            except DatasetError:
-                readout = math.nan
-            if not readout <= 0.0:
-                readouts[topics["camera_info"]] = readout
+    for topic in (st.topic for st in rec.streams if st.topic.endswith("/camera_info")):  # every vehicle's
+        try:
+            readout = rec.camera_readout_s(topic)
+        except DatasetError:
+            readout = math.nan
+        if not readout <= 0.0:
+            readouts[topic] = readout
     return RecordingInfo(p, p.stat().st_size, rec.profile, rec.library, streams, rec.metadata, readouts)

@@ -235,7 +235,15 @@ class RecordingReader:
                 reader = make_reader(fh)
                 header = reader.get_header()
                 summary = reader.get_summary()
-                self.metadata: dict[str, dict[str, str]] = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
+                records = list(reader.iter_metadata())
+                self.metadata: dict[str, dict[str, str]] = {m.name: dict(m.metadata) for m in records}
+                # Each camera's calibration record by its camera_info topic: a fleet's recording holds
+                # one ``calibration.color`` per vehicle, which ``metadata`` (by name) keeps one of.
+                self._camera_records = {
+                    m.metadata["topic"].strip("/"): (m.name, dict(m.metadata))
+                    for m in records
+                    if m.name.startswith("calibration.") and "topic" in m.metadata
+                }
         except FileNotFoundError as exc:
             raise DatasetError(f"recording {self.path} does not exist; check the path") from exc
         except OSError as exc:
@@ -338,16 +346,23 @@ class RecordingReader:
 
     def camera_readout_s(self, info_topic: str) -> float:
         """The rolling-shutter readout (s) recorded for the camera of ``info_topic``: ``readout_s``
-        of its ``calibration.<camera>`` record; 0 (a global shutter) when the record has none.
+        of its ``calibration.<camera>`` record (the one whose ``topic`` it is, in a fleet's recording);
+        0 (a global shutter) when the record has none.
 
         Raises:
             DatasetError: the recorded value is not a number >= 0 (names the record and the fix).
         """
-        name = f"calibration.{info_topic.rstrip('/').split('/')[-2]}"
-        record = self.metadata.get(name, {})
+        topic = info_topic.strip("/")
+        if topic in self._camera_records:
+            name, record = self._camera_records[topic]
+        else:
+            name = f"calibration.{topic.split('/')[-2]}"
+            record = self.metadata.get(name, {})
+            if "topic" in record:
+                return 0.0  # the record is another vehicle's camera of that name
         text = record.get("readout_s")
-        if text is None or record.get("topic", info_topic).strip("/") != info_topic.strip("/"):
-            return 0.0  # none recorded, or the record is another vehicle's camera of that name
+        if text is None:
+            return 0.0
         try:
             return check_readout_s(text)
         except BusError:

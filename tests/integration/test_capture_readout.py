@@ -83,6 +83,34 @@ def test_a_recording_without_a_readout_reads_as_a_global_shutter(
     assert open_sequence(other).intrinsics.readout_s == 0.0
 
 
+def test_a_fleet_recording_keeps_each_vehicles_readout(sessions: tuple[object, object], tmp_path: Path) -> None:
+    """Two vehicles' colour cameras under one recorder: both records are named calibration.color,
+    and each camera reads back its own readout (by its topic)."""
+    from flightkit.bus.streams import CameraModel, CameraStream
+
+    pub_s, rec_s = sessions
+    out = tmp_path / "fleet.mcap"
+    readouts = {"uav1": 0.02, "uav2": 0.0}
+    cams = {
+        ns: CameraStream(pub_s, Keys(ns), "color", CameraModel(160, 120, 150.0, 150.0, 80.0, 60.0, readout_s=r), "rgb8")
+        for ns, r in readouts.items()
+    }
+    frame = np.zeros((120, 160, 3), np.uint8)
+    try:
+        with BusRecorder(rec_s, out, ["uav1/**", "uav2/**"], compression="none") as rec:
+            wait(lambda: all(c.has_subscribers for c in cams.values()), 10, "the recorder to subscribe")
+            for i, cam in enumerate(cams.values()):
+                cam.publish(1_000 + i, frame)
+            wait(lambda: len(rec.calibrated) == 2, 10, "both calibration records")
+    finally:
+        for cam in cams.values():
+            cam.close()
+    reader = RecordingReader(out)
+    for ns, readout in readouts.items():
+        assert reader.camera_readout_s(f"/{ns}/camera/color/camera_info") == readout, ns
+    assert recording_info(out).readouts_s == {"/uav1/camera/color/camera_info": 0.02}
+
+
 @pytest.mark.parametrize("bad", ["fast", "-0.01", "nan", "inf"])
 def test_a_malformed_readout_is_refused_naming_the_record(tmp_path: Path, bad: str) -> None:
     src = tmp_path / "src.mcap"
