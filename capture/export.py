@@ -57,7 +57,7 @@ from flightkit.datasets.tum import to_tum_depth, tum_associate, write_tum_camera
 from flightkit.errors import CaptureError, DatasetError
 from flightkit.frames import MOCAP_FRAME_ID, WORLD_FRAME_ID, Transform, WorldFrames, quat_wxyz_to_xyzw
 
-__all__ = ["ExportReport", "camera_vehicles", "export_recording", "export_vehicles"]
+__all__ = ["ExportReport", "export_recording", "export_vehicles"]
 
 logger = logging.getLogger(__name__)
 
@@ -129,7 +129,7 @@ def _plan(
     vehicle: str | None,
 ) -> _Plan:
     if vehicle is None:
-        with_cameras = camera_vehicles(rec)
+        with_cameras = rec.camera_namespaces()
         if len(with_cameras) > 1:
             raise CaptureError(
                 f"{rec.path} holds the cameras of {', '.join(with_cameras)}; export one vehicle (--vehicle) "
@@ -286,11 +286,6 @@ def export_recording(
     return report
 
 
-def camera_vehicles(rec: RecordingReader) -> list[str]:
-    """The vehicles (namespaces) of a recording that have a camera image stream, sorted."""
-    return [ns for ns in rec.namespaces() if any("image" in t for t in rec.cameras(ns).values())]
-
-
 def export_vehicles(
     src: str | Path, out_dir: str | Path, fmt: str, *, allow_overwrite: bool = False, **options: Any
 ) -> dict[str, ExportReport]:
@@ -302,7 +297,7 @@ def export_vehicles(
     """
     src, out = Path(src), Path(out_dir)
     try:
-        vehicles = camera_vehicles(RecordingReader(src))
+        vehicles = RecordingReader(src).camera_namespaces()
     except DatasetError as exc:
         raise CaptureError(str(exc)) from exc
     if len(vehicles) <= 1:

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from flightkit.errors import EstimationError
+from flightkit.errors import DatasetError, EstimationError
 
 if TYPE_CHECKING:
     from flightkit.datasets.base import Sequence
@@ -195,16 +195,21 @@ def parse_sim_spec(spec: str) -> tuple[str, dict[str, Any]]:
     return name, kwargs
 
 
-def open_dataset(source: str | Path) -> Sequence:
-    """Open a dataset folder, recording or ``sim:PATTERN[?options]`` as a ``Sequence``.
+def open_dataset(source: str | Path, vehicle: str | None = None) -> Sequence:
+    """Open a dataset folder, recording or ``sim:PATTERN[?options]`` as a ``Sequence``;
+    ``vehicle``: which vehicle's camera of a fleet's recording.
 
     Raises:
-        DatasetError: the path is missing or not recognised.
+        DatasetError: the path is missing or not recognised, or ``vehicle`` is given for
+            something other than an MCAP recording.
         EstimationError: a malformed ``sim:`` spec.
     """
     from flightkit.datasets.registry import open_sequence
 
+    is_recording = not (isinstance(source, str) and source.startswith(SIM_PREFIX)) and Path(source).suffix == ".mcap"
+    if vehicle is not None and not is_recording:
+        raise DatasetError(f"a vehicle ({vehicle!r}) is chosen in an .mcap recording only; {source} is not one")
     if isinstance(source, str) and source.startswith(SIM_PREFIX):
         name, kwargs = parse_sim_spec(source)
         return synthetic_sequence(name, **kwargs)
-    return open_sequence(Path(source))
+    return open_sequence(Path(source), **({"vehicle": vehicle} if vehicle is not None else {}))

@@ -159,6 +159,7 @@ def run_vo_job(
     stop: int | None = None,
     init_from_groundtruth: bool = False,
     readout_s: float | None = None,
+    vehicle: str | None = None,
     evaluate_result: bool = False,
     alignment: str = "se3",
     plot_dir: Path | None = None,
@@ -167,14 +168,15 @@ def run_vo_job(
     """Run ``method`` over ``dataset`` (folder, recording or ``sim:`` spec), write the camera
     trajectory as TUM to ``out`` (default ``<sequence>_<method>.txt``), and evaluate it
     against the sequence's ground truth when ``evaluate_result`` or ``plot_dir`` asks for it.
-    ``readout_s``: the camera's rolling-shutter readout (None: the sequence's). Blocks until
+    ``readout_s``: the camera's rolling-shutter readout (None: the sequence's); ``vehicle``: whose
+    camera, in a fleet's recording. Blocks until
     done; ``progress(done, total)`` is called after every frame.
 
     Raises:
         DatasetError: unreadable input. EstimationError: the method cannot run on this sequence,
             or could not estimate the motion of most of its frames (nothing is written then).
     """
-    seq = open_dataset(dataset)
+    seq = open_dataset(dataset, vehicle)
     t_start = time.perf_counter()
     result = run_vo(
         seq,

@@ -87,6 +87,9 @@ def register(subparsers: Any) -> None:
         help="the camera's rolling-shutter readout, first row to last, ms (default: the dataset's, 20 for the "
         "TUM and 7-Scenes Kinects, 0 for a global shutter)",
     )
+    rn.add_argument(
+        "--vehicle", help="in a fleet's .mcap recording: the vehicle (bus namespace) whose camera to run on"
+    )
     rn.add_argument("--eval", action="store_true", help="evaluate against the sequence's ground truth")
     rn.add_argument("--align", choices=("se3", "sim3", "none"), default="se3", help="alignment for --eval")
     rn.add_argument("--plot-dir", type=Path, help="write evaluation plots here (implies --eval)")
@@ -212,6 +215,7 @@ def run_vo_command(args: argparse.Namespace) -> int:
             stop=args.stop,
             init_from_groundtruth=args.init_from_gt,
             readout_s=None if args.readout_ms is None else args.readout_ms * 1e-3,
+            vehicle=args.vehicle,
             evaluate_result=args.eval,
             alignment=args.align,
             plot_dir=args.plot_dir,

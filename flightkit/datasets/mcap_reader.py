@@ -319,6 +319,10 @@ class RecordingReader:
         """The vehicle namespaces the topics belong to, sorted."""
         return sorted({s.namespace for s in self.streams})
 
+    def camera_namespaces(self) -> list[str]:
+        """The vehicles (namespaces) that have a camera image stream, sorted."""
+        return [ns for ns in self.namespaces() if any("image" in t for t in self.cameras(ns).values())]
+
     # ------------------------------------------------------------------ messages
 
     def messages(self, topics: Sequence[str] | None = None, *, log_time_order: bool = True) -> Iterator[RawMessage]:

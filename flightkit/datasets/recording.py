@@ -55,6 +55,8 @@ class McapSequence:
 
     Args:
         path: the recording.
+        vehicle: the vehicle (bus namespace) whose camera and mocap body to read; needed when the
+            recording holds several vehicles' cameras (a fleet's).
         camera: the main camera's name (default: the first of color, left, gray, infra1, image).
         mocap_body: the ground-truth body (default: the recording's own, else the first).
         T_world_mocap: overrides the recording's mocap frame in the world.
@@ -67,13 +69,15 @@ class McapSequence:
             the recording's own record.
 
     Raises:
-        DatasetError: unreadable recording, no camera, no intrinsics, a malformed readout record, unknown body.
+        DatasetError: unreadable recording, no camera, no intrinsics, a malformed readout record, unknown body,
+            several vehicles' cameras and no ``vehicle`` named.
     """
 
     def __init__(
         self,
         path: Path,
         camera: str | None = None,
+        vehicle: str | None = None,
         mocap_body: str | None = None,
         T_world_mocap: Transform | None = None,  # noqa: N803
         T_body_camera: Transform | None = None,  # noqa: N803
@@ -87,7 +91,22 @@ class McapSequence:
         self.rectification: StereoRectification | None = None
         self._max_diff_ns = round(max_diff_s * 1e9)
         self.reader = RecordingReader(path)
-        cams = self.reader.cameras()
+        with_cameras = self.reader.camera_namespaces()
+        if vehicle is None and len(with_cameras) > 1:
+            raise DatasetError(
+                f"recording {path} holds the cameras of {', '.join(with_cameras)}; name the vehicle to read "
+                f"(vehicle='{with_cameras[0]}'; flightkit vo run --vehicle {with_cameras[0]})"
+            )
+        if vehicle is not None:
+            if vehicle not in with_cameras:
+                raise DatasetError(
+                    f"recording {path} has no camera of vehicle {vehicle!r}; it has cameras of "
+                    f"{', '.join(with_cameras) or 'no vehicle'}"
+                )
+            if len(with_cameras) > 1:
+                self.name = f"{path.stem}_{vehicle}"  # one output per vehicle of a fleet
+        self.vehicle = vehicle
+        cams = self.reader.cameras(vehicle)
         image_cams = {n: t for n, t in cams.items() if "image" in t or "image/compressed" in t}
         if not image_cams:
             raise DatasetError(f"recording {path} lacks camera image topics (…/camera/<name>/image)")
@@ -112,7 +131,7 @@ class McapSequence:
         self.T_body_camera = T_body_camera or from_record or calib.T_body_camera or Transform()
         self._index(path, cams, camera)
         self._gt: Trajectory | None = None
-        mocap = self.reader.mocap_topics()
+        mocap = self.reader.mocap_topics(vehicle)
         body = mocap_body or (calib.mocap_body if calib.mocap_body in mocap else None)
         if body is None and mocap:
             body = sorted(mocap)[0]

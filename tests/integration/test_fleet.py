@@ -176,10 +176,12 @@ def test_fly_a_fleet_plan_from_the_command_line(tmp_path: Path, capsys: pytest.C
     assert 0.8 < sep < 1.0  # the wing keeps 0.9 m to the leader's side
 
 
-def test_a_fleet_recording_is_grouped_and_exported_per_vehicle(tmp_path: Path) -> None:
+def test_a_fleet_recording_is_grouped_and_exported_per_vehicle(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     """Two simulated vehicles' mocap and cameras over a real Zenoh session into one MCAP file:
-    ``capture info`` groups it by vehicle and the export writes one TUM folder per vehicle, each
-    with its own vehicle's ground truth."""
+    ``capture info`` groups it by vehicle, the export writes one TUM folder per vehicle, each
+    with its own vehicle's ground truth, and it reads as a sequence one named vehicle at a time."""
     from capture.bus_recorder import start_recording
     from capture.config import CaptureConfig
     from capture.export import export_vehicles
@@ -237,6 +239,29 @@ def test_a_fleet_recording_is_grouped_and_exported_per_vehicle(tmp_path: Path) -
         gt = np.loadtxt(tmp_path / "tum" / v / "groundtruth.txt")
         assert len(gt) > 20 and reports[v].associated_groundtruth > 5
         assert abs(float(np.median(gt[:, 2])) - y) < 0.1, (v, gt[:3])
+    # As a sequence (vo run's input): one vehicle at a time, named, with its own ground truth.
+    from flightkit.cli.main import main as flightkit_main
+    from flightkit.datasets import open_sequence
+    from flightkit.errors import DatasetError
+
+    with pytest.raises(DatasetError, match=r"holds the cameras of uav1, uav2; name the vehicle to read"):
+        open_sequence(out)
+    with pytest.raises(DatasetError, match=r"has no camera of vehicle 'uav3'"):
+        open_sequence(out, vehicle="uav3")
+    for v, y in (("uav1", -0.5), ("uav2", 0.5)):
+        seq = open_sequence(out, vehicle=v)
+        assert seq.name == f"fleet_{v}" and len(seq) >= 10
+        assert abs(float(np.median(seq.groundtruth().positions[:, 1])) - y) < 0.1, v
+    vo_run = ["vo", "run", str(out), "--method", "rgbd-pnp", "-o"]
+    assert flightkit_main([*vo_run, str(tmp_path / "x.txt")]) == 1  # which vehicle? it says so
+    assert not (tmp_path / "x.txt").exists()
+    # With the vehicle named, VO runs on that vehicle's frames (standing on the ground, the depth
+    # camera sees nothing in range, so VO itself says it could not estimate them).
+    capsys.readouterr()
+    flightkit_main([*vo_run, str(tmp_path / "uav2.txt"), "--vehicle", "uav2"])
+    err = capsys.readouterr().err
+    n = len(open_sequence(out, vehicle="uav2"))
+    assert "holds the cameras" not in err and f"of {n - 1} frames of fleet_uav2" in err, err
 
 
 def test_a_pilot_takes_one_vehicle_and_ctrl_c_lands_the_others() -> None:
