@@ -206,10 +206,11 @@ def open_dataset(source: str | Path, vehicle: str | None = None) -> Sequence:
     """
     from flightkit.datasets.registry import open_sequence
 
-    is_recording = not (isinstance(source, str) and source.startswith(SIM_PREFIX)) and Path(source).suffix == ".mcap"
-    if vehicle is not None and not is_recording:
+    is_sim = isinstance(source, str) and source.startswith(SIM_PREFIX)
+    if vehicle is not None and (is_sim or Path(source).suffix.lower() != ".mcap"):
         raise DatasetError(f"a vehicle ({vehicle!r}) is chosen in an .mcap recording only; {source} is not one")
-    if isinstance(source, str) and source.startswith(SIM_PREFIX):
+    if is_sim:
+        assert isinstance(source, str)
         name, kwargs = parse_sim_spec(source)
         return synthetic_sequence(name, **kwargs)
     return open_sequence(Path(source), **({"vehicle": vehicle} if vehicle is not None else {}))

@@ -55,8 +55,6 @@ class McapSequence:
 
     Args:
         path: the recording.
-        vehicle: the vehicle (bus namespace) whose camera and mocap body to read; needed when the
-            recording holds several vehicles' cameras (a fleet's).
         camera: the main camera's name (default: the first of color, left, gray, infra1, image).
         mocap_body: the ground-truth body (default: the recording's own, else the first).
         T_world_mocap: overrides the recording's mocap frame in the world.
@@ -67,6 +65,8 @@ class McapSequence:
             ground truth onto the camera's clock).
         calibration: a calibration result (e.g. a ``--calibration FILE.json``) used instead of
             the recording's own record.
+        vehicle: the vehicle (bus namespace) whose camera and mocap body to read; needed when the
+            recording holds several vehicles' cameras (a fleet's).
 
     Raises:
         DatasetError: unreadable recording, no camera, no intrinsics, a malformed readout record, unknown body,
@@ -77,13 +77,13 @@ class McapSequence:
         self,
         path: Path,
         camera: str | None = None,
-        vehicle: str | None = None,
         mocap_body: str | None = None,
         T_world_mocap: Transform | None = None,  # noqa: N803
         T_body_camera: Transform | None = None,  # noqa: N803
         max_diff_s: float = 0.02,
         use_calibration: bool = True,
         calibration: CalibrationResult | None = None,
+        vehicle: str | None = None,
     ) -> None:
         self.path = path
         self.name = path.stem

@@ -158,6 +158,9 @@ def test_cli_runs_a_synthetic_sequence_and_reports_frames_per_second(
     # A malformed spec is one clear line and a runtime error code.
     assert main(["vo", "run", "sim:rectangle?fast=1", "--method", "flow"]) == 1
     assert "unknown option 'fast'" in capsys.readouterr().err
+    # A vehicle is chosen in a fleet's recording only.
+    assert main(["vo", "run", "sim:circle?duration_s=2&rate_hz=10", "--vehicle", "uav2"]) == 1
+    assert "is chosen in an .mcap recording only" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("pattern", PATTERNS)
