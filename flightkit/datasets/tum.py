@@ -92,7 +92,9 @@ TUM_INTRINSICS: dict[str, CameraIntrinsics] = {
         KINECT_READOUT_S,
     ),
     "freiburg3": CameraIntrinsics(535.4, 539.2, 320.1, 247.6, 640, 480, (), KINECT_READOUT_S),
-    "default": CameraIntrinsics(525.0, 525.0, 319.5, 239.5, 640, 480),
+    # TUM's default: the Kinect's factory calibration (every TUM RGB-D sequence is a Kinect v1 or
+    # the Xtion of the same design), so the Kinect's readout too.
+    "default": CameraIntrinsics(525.0, 525.0, 319.5, 239.5, 640, 480, (), KINECT_READOUT_S),
 }
 
 _PAIR_FILES = (
@@ -172,6 +174,13 @@ def open_tum(path: Path, intrinsics: CameraIntrinsics | None = None, with_depth:
     if intrinsics is None and (path / "camera.yaml").is_file():
         intrinsics = read_tum_camera_yaml(path)
     K = intrinsics or tum_intrinsics(path)  # noqa: N806
+    if K is TUM_INTRINSICS["default"]:
+        logger.warning(
+            "%s: its path names no TUM sensor (freiburg1/2/3 or fr1/2/3) and it has no camera.yaml; using TUM's "
+            "default Kinect calibration (fx 525 px, readout 20 ms): put the sensor in the folder name or add a "
+            "camera.yaml for another camera",
+            path,
+        )
     return FileSequence(
         name=path.name,
         kind=SequenceKind.TUM,

@@ -160,6 +160,25 @@ def test_tum_rgbd_folder(tmp_path: Path) -> None:
     assert len(open_sequence(root, with_depth=False)) == 6
 
 
+def test_a_tum_folder_that_names_no_sensor_is_a_kinect_and_says_so(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """TUM's default calibration is the Kinect's factory one, with the Kinect's rolling shutter;
+    a named sensor or a camera.yaml says nothing."""
+    root = tmp_path / "desk_sequence"
+    _write_tum_folder(root, n=3)
+    with caplog.at_level("WARNING", logger="flightkit.datasets.tum"):
+        seq = open_sequence(root)
+    assert (seq.intrinsics.fx, seq.intrinsics.cx, seq.intrinsics.readout_s) == (525.0, 319.5, 0.02)
+    assert "names no TUM sensor" in caplog.text and "camera.yaml" in caplog.text
+    caplog.clear()
+    named = tmp_path / "tum_fr2_desk"
+    _write_tum_folder(named, n=3)
+    with caplog.at_level("WARNING", logger="flightkit.datasets.tum"):
+        assert open_sequence(named).intrinsics.fx == pytest.approx(520.908620)
+    assert "names no TUM sensor" not in caplog.text
+
+
 def test_unrecognised_and_incomplete_folders(tmp_path: Path) -> None:
     with pytest.raises(DatasetError, match="not a recognised dataset folder"):
         open_sequence(tmp_path)
