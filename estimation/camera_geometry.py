@@ -132,9 +132,14 @@ class CameraGeometry:
         else:
             out = cv2.undistortPoints(px.reshape(-1, 1, 2).astype(np.float64), self.K, self.dist, P=self.K)
             und = np.asarray(out.reshape(-1, 2), dtype=np.float64)
-        if self.shutter is not None and rate is not None:
-            und = self.shutter.pixels(und, px[:, 1], rate, z_m)
-        return und
+        return self.at_stamp(und, px, rate, z_m)
+
+    def at_stamp(self, und: F64, px: F32, rate: CameraRate | None, z_m: F64 | None = None) -> F64:
+        """:meth:`undistort`'s second half: undistorted pixels ``und`` of image pixels ``px`` moved
+        from their rows' times to the stamp (unchanged without a shutter or a ``rate``)."""
+        if self.shutter is None or rate is None:
+            return und
+        return self.shutter.pixels(und, px[:, 1], rate, z_m)
 
     def depth_points(self, depth_m: F32, px: F32, rate: CameraRate | None = None) -> tuple[F64, Bool]:
         """3D points (camera frame at the image's stamp) of image pixels from the depth image, and

@@ -151,7 +151,8 @@ class FlowEstimator:
         # (for the polish) with the rate the estimate implies.
         rate = CameraRate.from_step(T_pred_cur_prev, dt_s) if geo.shutter and pose.T_step is not None else None
         if len(idx) >= o.min_inliers:
-            x0, x1 = ref.xn[idx], self._normalised(px[idx], rate, ref.Z[idx])
+            und_lens = geo.undistort(px[idx])  # once: both rates move it to the stamp
+            x0, x1 = ref.xn[idx], self._normalised(px[idx], rate, ref.Z[idx], und_lens)
             thr = fo.threshold_px / geo.intr.fx / dt_ref_s
             twist, inl = velocity_ransac(x0, x1, ref.Z[idx], dt_ref_s, thr, rng=self.rng, robust_iters=fo.robust_iters)
             if np.count_nonzero(inl) >= o.min_inliers:
@@ -159,7 +160,7 @@ class FlowEstimator:
                 if geo.shutter is not None:
                     T_step = invert(ref.T_world_cam @ T_ref_cur) @ pose.T_world_cam
                     rate = CameraRate.from_step(T_step, dt_s)
-                    x1 = self._normalised(px[idx], rate, ref.Z[idx])
+                    x1 = self._normalised(px[idx], rate, ref.Z[idx], und_lens)
                     if not ref.has_rate:
                         # The first reference was made before any motion: it gets this step's rate.
                         ref = replace(ref, xn=self._normalised(ref.pts, rate, ref.Z), has_rate=True)
@@ -205,11 +206,14 @@ class FlowEstimator:
         pose.prev_stamp_ns = stamp_ns
         return FlowStep(n_inl, quality, renew)
 
-    def _normalised(self, px: F32, rate: CameraRate | None = None, z_m: F64 | None = None) -> F64:
+    def _normalised(
+        self, px: F32, rate: CameraRate | None = None, z_m: F64 | None = None, und_lens: F64 | None = None
+    ) -> F64:
         """Normalised image coordinates ``K^-1 [u, v, 1]`` (undistorted; at the stamp with the
-        camera's ``rate``, a rolling shutter, ``z_m`` the points' depths) of pixels, (N, 2)."""
+        camera's ``rate``, a rolling shutter, ``z_m`` the points' depths) of pixels, (N, 2);
+        ``und_lens``: their undistorted pixels when already computed."""
         geo = self.geo
-        und = geo.undistort(px, rate, z_m)
+        und = geo.undistort(px, rate, z_m) if und_lens is None else geo.at_stamp(und_lens, px, rate, z_m)
         return cast(F64, np.c_[(und[:, 0] - geo.intr.cx) / geo.intr.fx, (und[:, 1] - geo.intr.cy) / geo.intr.fy])
 
     def _new_ref(

@@ -220,6 +220,7 @@ class VisualOdometry:
         self,
         idx: npt.NDArray[np.intp],
         px: F32,
+        und_lens: F64,
         T_guess_cur_kf: F64,
         has_prior: bool,
         rate: CameraRate | None,
@@ -228,8 +229,9 @@ class VisualOdometry:
         depth_m: F32 | None,
         guess_inliers: int | None = None,
     ) -> Tracks:
-        """The tracked keyframe points ``idx`` (current pixels ``px[idx]``) for the estimator; their
-        undistorted pixels at the frame's stamp with the camera's ``rate`` (a rolling shutter);
+        """The tracked keyframe points ``idx`` (current pixels ``px[idx]``, ``und_lens`` undistorted)
+        for the estimator; their undistorted pixels at the frame's stamp with the camera's ``rate``
+        (a rolling shutter);
         ``guess_inliers``: the inliers of the measured motion ``T_guess_cur_kf`` (``Tracks``)."""
         front = self.front
         X_kf = front.kf_X[idx]
@@ -240,7 +242,7 @@ class VisualOdometry:
             X_kf,
             front.kf_px[idx],
             px_cur,
-            self.geo.undistort(px_cur, rate, z_cur),
+            self.geo.at_stamp(und_lens, px_cur, rate, z_cur),
             T_guess_cur_kf,
             has_prior,
             gray,
@@ -269,7 +271,10 @@ class VisualOdometry:
         the motion is measured again with it when that moves the rows' pixels."""
         assert self._estimator is not None
         shutter = self.geo.shutter
-        m = self._estimator.estimate(self._tracks(idx, px, T_pred_cur_kf, has_prior, rate, gray, right_gray, depth_m))
+        und_lens = self.geo.undistort(px[idx])  # once: both measurements move it to the stamp
+        m = self._estimator.estimate(
+            self._tracks(idx, px, und_lens, T_pred_cur_kf, has_prior, rate, gray, right_gray, depth_m)
+        )
         if shutter is not None and m.ok:
             rate_m = CameraRate.from_step(m.T_cur_ref @ invert(self.T_prev_kf), dt_s)
             if self.front.kf_rate is None:
@@ -282,7 +287,7 @@ class VisualOdometry:
                 # its share of inliers, not the options' (else it falls to RANSAC again).
                 n_inl = int(np.count_nonzero(m.inliers))
                 m2 = self._estimator.estimate(
-                    self._tracks(idx, px, m.T_cur_ref, True, rate_m, gray, right_gray, depth_m, n_inl)
+                    self._tracks(idx, px, und_lens, m.T_cur_ref, True, rate_m, gray, right_gray, depth_m, n_inl)
                 )
                 if m2.ok:
                     m = m2

@@ -103,7 +103,7 @@ class RollingShutter:
             z = np.where(np.isfinite(z_m), z_m, _FAR_M)
         return _move_pixels(
             np.ascontiguousarray(und_px, dtype=np.float64),
-            np.ascontiguousarray(rows_px, dtype=np.float64),
+            self.row_dt_s(rows_px),
             z,
             rate.omega_rad_s,
             rate.velocity_m_s,
@@ -111,15 +111,13 @@ class RollingShutter:
             self.fy,
             self.cx,
             self.cy,
-            0.5 * (self.height_px - 1),
-            self.readout_s / self.height_px,
         )
 
 
 @njit(cache=True)
 def _move_pixels(
     und: Any,
-    rows: Any,
+    dt_s: Any,
     z: Any,
     w: Any,
     v: Any,
@@ -127,16 +125,15 @@ def _move_pixels(
     fy: float,
     cx: float,
     cy: float,
-    row_mid: float,
-    line_s: float,
 ) -> F64:
-    """:meth:`RollingShutter.pixels` in one compiled loop (``z`` inf: no velocity part)."""
+    """:meth:`RollingShutter.pixels` in one compiled loop, given each pixel's row time minus the
+    stamp's (``dt_s``; ``z`` inf: no velocity part)."""
     n = und.shape[0]
     out = np.empty((n, 2))
     for i in range(n):
         x = (und[i, 0] - cx) / fx
         y = (und[i, 1] - cy) / fy
-        dt = (rows[i] - row_mid) * line_s
+        dt = dt_s[i]
         inv_z = 1.0 / z[i]
         # b = (x, y, 1) moved by dt * (w x b + v / z)
         bx = x + dt * (w[1] - w[2] * y + v[0] * inv_z)
