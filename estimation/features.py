@@ -7,8 +7,8 @@ positions as ``float32`` arrays of shape (N, 2) in pixels (x right, y down), whi
 * :class:`GridDetector` spreads FAST corners over the image: the image is cut into cells
   and only the strongest few corners of each cell are kept, so a textured corner of the
   image cannot take the whole budget (motion estimates from clustered points are poorly
-  conditioned). Cells that already hold tracked points are skipped when topping up.
-* :func:`shi_tomasi` wraps ``cv2.goodFeaturesToTrack`` (the corners pyramidal LK tracks best).
+  conditioned). Cells that already hold tracked points are skipped when topping up. The
+  strength is FAST's response, or the Shi-Tomasi score (the corners LK tracks best).
 * :class:`DescriptorExtractor` wraps ORB (binary, Hamming) and SIFT (float, L2) and records
   which norm its descriptors need, so matchers cannot pick the wrong one.
 
@@ -28,10 +28,10 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from estimation._grid_kernel import grid_select
+from estimation._grid_kernel import grid_select, min_eigenvalue_at
 from flightkit.errors import EstimationError
 
-__all__ = ["DescriptorExtractor", "Features", "GridDetector", "as_gray", "shi_tomasi"]
+__all__ = ["DescriptorExtractor", "Features", "GridDetector", "as_gray"]
 
 logger = logging.getLogger(__name__)
 
@@ -65,6 +65,8 @@ class GridDetector:
             fewer corners than the budget).
         border_px: corners closer than this to the border are dropped (KLT windows and
             descriptors need a margin).
+        score: what ranks the corners of a cell: ``"fast"`` (FAST's response) or
+            ``"shi-tomasi"`` (the structure tensor's smaller eigenvalue over 5x5 pixels).
     """
 
     def __init__(
@@ -73,7 +75,10 @@ class GridDetector:
         cell_px: int = 32,
         fast_threshold: int = 20,
         border_px: int = 8,
+        score: str = "fast",
     ) -> None:
+        if score not in ("fast", "shi-tomasi"):
+            raise EstimationError(f"GridDetector score is {score!r}; use 'fast' or 'shi-tomasi'")
         if max_features < 1:
             raise EstimationError(f"max_features must be >= 1, got {max_features}; ask for some corners")
         if cell_px < 4:
@@ -82,6 +87,7 @@ class GridDetector:
         self.cell_px = cell_px
         self.fast_threshold = fast_threshold
         self.border_px = border_px
+        self.score = score
         self._threshold = fast_threshold
         self._fast = cv2.FastFeatureDetector.create(threshold=fast_threshold, nonmaxSuppression=True)
         self._fast_low = cv2.FastFeatureDetector.create(threshold=5, nonmaxSuppression=True)
@@ -121,7 +127,10 @@ class GridDetector:
         if not kps:
             return np.empty((0, 2), np.float32)
         pts = np.asarray(cv2.KeyPoint.convert(kps), np.float32).reshape(-1, 2)
-        resp = np.fromiter(map(_RESPONSE, kps), dtype=np.float32, count=len(kps))
+        if self.score == "fast":
+            resp = np.fromiter(map(_RESPONSE, kps), dtype=np.float32, count=len(kps))
+        else:
+            resp = min_eigenvalue_at(gray, pts)
         cs = self.cell_px
         ncx = (w + cs - 1) // cs
         ncy = (h + cs - 1) // cs
@@ -134,20 +143,6 @@ class GridDetector:
         # Inside the border, in free cells, the strongest few of each cell (one compiled loop).
         chosen = grid_select(pts, resp, occupied, cs, ncx, self.border_px, w, h, budget)
         return np.ascontiguousarray(pts[chosen])
-
-
-def shi_tomasi(
-    gray: npt.NDArray[np.uint8],
-    max_corners: int = 300,
-    quality: float = 0.01,
-    min_distance_px: float = 8.0,
-    mask: npt.NDArray[np.uint8] | None = None,
-) -> Points2:
-    """Shi-Tomasi ("good features to track") corners, (N, 2) float32. Returns immediately."""
-    c = cv2.goodFeaturesToTrack(gray, max_corners, quality, min_distance_px, mask=mask, blockSize=5)
-    if c is None:
-        return np.empty((0, 2), np.float32)
-    return np.ascontiguousarray(c.reshape(-1, 2), dtype=np.float32)
 
 
 @dataclass(frozen=True, slots=True, eq=False)

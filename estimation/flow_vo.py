@@ -1,9 +1,10 @@
 """The ``flow`` method's motion estimator: optical-flow velocity from a reference frame.
 
-Shi-Tomasi corners of a reference frame with a depth each (depth image, per-point stereo, or
-the stereo altitude), tracked by LK into every new frame; the 6-DoF velocity over the interval
-since the reference from the interaction matrix (3-point RANSAC, reweighted refits), polished
-on the reference points' reprojection and integrated to a pose. Runs behind
+Corners of a reference frame (FAST on a grid, ranked by the Shi-Tomasi score) with a depth
+each (depth image, per-point stereo, or the stereo altitude), tracked by LK into every new
+frame; the 6-DoF velocity over the interval since the reference from the interaction matrix
+(3-point RANSAC, reweighted refits), polished on the reference points' reprojection and
+integrated to a pose. Runs behind
 :class:`~estimation.pipeline.VisualOdometry`, sharing its camera geometry (tracking windows,
 stereo, depth lookup) and pose track (prediction, sanity check).
 """
@@ -15,13 +16,13 @@ import math
 from dataclasses import dataclass, replace
 from typing import Any, cast
 
-import cv2
 import numpy as np
 import numpy.typing as npt
 
 from estimation.camera_geometry import CameraGeometry
-from estimation.features import DescriptorExtractor, shi_tomasi
+from estimation.features import DescriptorExtractor
 from estimation.flow import integrate_velocity, polish_motion, stereo_altitude_m, track_klt, velocity_ransac
+from estimation.frontend import grid_detector
 from estimation.motion import invert
 from estimation.pose_track import PoseTrack
 from estimation.rolling_shutter import CameraRate
@@ -76,6 +77,8 @@ class FlowEstimator:
         self.ref: _FlowRef | None = None
         self.altitude_m = math.nan
         self._warned_altitude = False
+        # Its tracks live from reference to reference: the corners LK tracks best, spread out.
+        self.grid = grid_detector(geo, opts, score="shi-tomasi")
 
     def process(
         self,
@@ -233,12 +236,7 @@ class FlowEstimator:
         pts = np.ascontiguousarray(kept_px, dtype=np.float32).reshape(-1, 2)
         step = np.asarray(kept_step_px, dtype=np.float64).reshape(-1, 2)
         if len(pts) < o.max_features // 2:
-            mask = None
-            if len(pts):
-                mask = np.full(gray.shape, 255, np.uint8)
-                for x, y in pts:
-                    cv2.circle(mask, (int(x), int(y)), 8, 0, -1)
-            new = shi_tomasi(gray, o.max_features - len(pts), 0.01, max(5.0, geo.intr.width / 60), mask)
+            new = self.grid.detect(gray, existing=pts, budget=o.max_features - len(pts))
             pts = np.concatenate([pts, new]) if len(pts) else new
             step = np.concatenate([step, np.zeros((len(new), 2))])
         if depth_m is not None:

@@ -25,7 +25,7 @@ from estimation.revisit import StoredKeyframe
 from estimation.rolling_shutter import CameraRate
 from estimation.vo_options import VoOptions
 
-__all__ = ["FrontEnd"]
+__all__ = ["FrontEnd", "grid_detector"]
 
 logger = logging.getLogger(__name__)
 
@@ -33,6 +33,15 @@ F64 = npt.NDArray[np.float64]
 F32 = npt.NDArray[np.float32]
 U8 = npt.NDArray[np.uint8]
 Bool = npt.NDArray[np.bool_]
+
+
+def grid_detector(geometry: CameraGeometry, options: VoOptions, score: str = "fast") -> GridDetector:
+    """The grid corner detector of ``options`` (``max_features``, ``cell_px``: automatic from the
+    image size, ``fast_threshold``, ``border_px``) for the camera of ``geometry``; ``score``:
+    :class:`GridDetector`'s."""
+    w, h = geometry.intr.width, geometry.intr.height
+    cell = options.cell_px or max(12, int(math.sqrt(w * h / options.max_features) * 1.1))
+    return GridDetector(options.max_features, cell, options.fast_threshold, border_px=options.border_px, score=score)
 
 
 class FrontEnd:
@@ -48,11 +57,7 @@ class FrontEnd:
         self.geo = geometry
         self.opts = options
         self.stereo = stereo
-        w, h = geometry.intr.width, geometry.intr.height
-        cell = options.cell_px or max(12, int(math.sqrt(w * h / options.max_features) * 1.1))
-        self.grid = GridDetector(
-            options.max_features, cell, options.fast_threshold, border_px=options.border_px
-        )
+        self.grid = grid_detector(geometry, options)
         self.orb = DescriptorExtractor("orb", 1000)
         # The keyframe: its points (keyframe camera frame, m), their pixels there, ids, fusion
         # weights, where they were tracked to last, and how many it started with.

@@ -459,3 +459,50 @@ def test_grid_select_equals_numpy(budget: int) -> None:
         got = pts[grid_select(pts, resp, occupied, cs, ncx, b, w, h, budget)]
         want = _grid_select_numpy(pts, resp, occupied, cs, ncx, b, w, h, budget)
         assert got.shape == want.shape and np.array_equal(got, want)
+
+
+def test_min_eigenvalue_at_is_opencvs_shi_tomasi_score() -> None:
+    """The score equals ``cv2.cornerMinEigenVal`` (5x5 block, 3x3 Sobel) up to OpenCV's gradient
+    scale ``1 / (4 * 5 * 255)`` squared, at every interior pixel of a textured image; 0 at the border."""
+    from estimation._grid_kernel import min_eigenvalue_at
+
+    rng = np.random.default_rng(3)
+    gray = cv2.GaussianBlur(rng.integers(0, 256, (60, 80)).astype(np.uint8), (5, 5), 1.2)
+    ys, xs = np.mgrid[0:60, 0:80]
+    pts = np.c_[xs.ravel(), ys.ravel()].astype(np.float32)
+    got = min_eigenvalue_at(gray, pts).reshape(60, 80)
+    want = cv2.cornerMinEigenVal(gray, 5, ksize=3) * (4 * 5 * 255) ** 2
+    inner = (slice(3, -3), slice(3, -3))
+    assert np.allclose(got[inner], want[inner], rtol=1e-4, atol=1e-5 * float(want.max()))
+    assert float(got[inner].max()) > 0 and np.all(got[:3] == 0) and np.all(got[:, -3:] == 0)
+
+
+def test_grid_detector_ranks_a_cells_corners_by_the_chosen_score() -> None:
+    """``score="shi-tomasi"`` keeps, in each cell, the corners with the highest Shi-Tomasi score
+    among FAST's; ``"fast"`` those with the highest FAST response; another name is refused."""
+    from estimation._grid_kernel import min_eigenvalue_at
+    from estimation.features import GridDetector
+
+    rng = np.random.default_rng(4)
+    gray = cv2.GaussianBlur(rng.integers(0, 256, (240, 320)).astype(np.uint8), (3, 3), 0.8)
+    kps = cv2.FastFeatureDetector.create(threshold=5, nonmaxSuppression=True).detect(gray, None)
+    pts = np.asarray(cv2.KeyPoint.convert(kps), np.float32)
+    st = min_eigenvalue_at(gray, pts)
+    fast = np.array([k.response for k in kps], np.float32)
+    cell = 80
+    for score, strength in (("shi-tomasi", st), ("fast", fast)):
+        # One corner per cell (12 cells, budget 12): each cell's strongest inside the border.
+        det = GridDetector(max_features=12, cell_px=cell, fast_threshold=5, border_px=8, score=score)
+        got = det.detect(gray)
+        inside = (pts[:, 0] >= 8) & (pts[:, 0] < 312) & (pts[:, 1] >= 8) & (pts[:, 1] < 232)
+        cell_of = (pts[:, 1] // cell).astype(int) * 4 + (pts[:, 0] // cell).astype(int)
+        for p in got:
+            c = int(p[1] // cell) * 4 + int(p[0] // cell)
+            here = inside & (cell_of == c)
+            assert strength[(pts == p).all(axis=1)][0] == strength[here].max()
+        assert len(got) == 12
+    st_pick = GridDetector(12, cell, 5, 8, score="shi-tomasi").detect(gray)
+    fast_pick = GridDetector(12, cell, 5, 8, score="fast").detect(gray)
+    assert not np.array_equal(st_pick, fast_pick)  # the score decides
+    with pytest.raises(EstimationError, match="shi-tomasi"):
+        GridDetector(score="harris")
