@@ -32,6 +32,8 @@ from llvmlite import binding as llvm
 from numba import njit, types
 from numba.extending import get_cython_function_address
 
+from estimation._ransac_kernel import RNG_SEED, rng_next, update_iterations
+
 __all__ = ["find_essential"]
 
 F64 = npt.NDArray[np.float64]
@@ -167,18 +169,6 @@ _REAL = 1e-11
 """An eigenvalue (of the action matrix) whose imaginary part is within this (relative) is real."""
 _COMPLEX = 1e-6
 """... and beyond this complex; in between, a root OpenCV's solver may take either way."""
-
-_RNG_COEFF = np.uint64(4164903690)
-_LOW32 = np.uint64(0xFFFFFFFF)
-_SHIFT32 = np.uint64(32)
-
-
-@njit(cache=True)
-def _rng_next(state: Any) -> tuple[Any, int]:
-    """One step of OpenCV's ``cv::RNG`` (multiply-with-carry): the new state and the 32-bit draw."""
-    state = (state & _LOW32) * _RNG_COEFF + (state >> _SHIFT32)
-    return state, int(state & _LOW32)
-
 
 @njit(cache=True)
 def _polymul_add(p: Any, q: Any, scale: float, out: Any) -> None:
@@ -344,20 +334,6 @@ def _close(A: Any, B: Any) -> bool:
 
 
 @njit(cache=True)
-def _update_iterations(confidence: float, outlier_ratio: float, max_iters: int) -> int:
-    """OpenCV's ``RANSACUpdateNumIters`` for 5-point samples."""
-    num = max(1.0 - confidence, 2.2250738585072014e-308)
-    denom = 1.0 - (1.0 - outlier_ratio) ** 5
-    if denom < 2.2250738585072014e-308:
-        return 0
-    num = np.log(num)
-    denom = np.log(denom)
-    if denom >= 0 or -num >= max_iters * (-denom):
-        return max_iters
-    return int(np.rint(num / denom))
-
-
-@njit(cache=True)
 def _ransac(p1: Any, p2: Any, thr2: np.float32, confidence: float, max_iters: int) -> tuple[int, F64, Any, bool]:
     """5-point RANSAC over normalised matches (see the module docstring); returns the best
     inlier count (0: none), its essential matrix, its inlier mask, and whether OpenCV's order
@@ -371,7 +347,7 @@ def _ransac(p1: Any, p2: Any, thr2: np.float32, confidence: float, max_iters: in
     s1 = np.empty((5, 2))
     s2 = np.empty((5, 2))
     idx = np.empty(5, np.int64)
-    state = np.uint64(0xFFFFFFFFFFFFFFFF)
+    state = RNG_SEED
     best = 0
     ambiguous = False
     niters = max(max_iters, 1)
@@ -379,7 +355,7 @@ def _ransac(p1: Any, p2: Any, thr2: np.float32, confidence: float, max_iters: in
     while it < niters:
         for i in range(5):
             while True:
-                state, r = _rng_next(state)
+                state, r = rng_next(state)
                 j = r % n
                 dup = False
                 for k in range(i):
@@ -410,7 +386,7 @@ def _ransac(p1: Any, p2: Any, thr2: np.float32, confidence: float, max_iters: in
                     for c in range(3):
                         best_E[r, c] = models[m, r, c]
                 best = good
-                niters = _update_iterations(confidence, (n - good) / n, niters)
+                niters = update_iterations(confidence, (n - good) / n, 5, niters)
         # Two different solutions of one sample at a new best count (a planar scene has two
         # with the same inliers): OpenCV keeps the first in its own order of the solutions,
         # which this solver does not reproduce.

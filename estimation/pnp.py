@@ -1,5 +1,5 @@
-"""3D-2D motion: PnP with RANSAC (OpenCV's solvers) and the Gauss-Newton pose polish on
-reprojection plus disparity residuals.
+"""3D-2D motion: PnP with RANSAC (OpenCV's solvers, or the compiled P3P RANSAC of
+``estimation.p3p``) and the Gauss-Newton pose polish on reprojection plus disparity residuals.
 
 Functions:
     pnp(points_ref, pts_px, K, method, ...) -> Motion  iterative / EPnP / SQPnP with RANSAC
@@ -16,6 +16,7 @@ import numpy.typing as npt
 
 from estimation import _pose_kernel
 from estimation.motion import Motion, failed_motion, make_T
+from estimation.p3p import pnp_ransac
 from flightkit.errors import EstimationError
 
 __all__ = ["PNP_METHODS", "pnp", "refine_pose"]
@@ -61,10 +62,12 @@ def pnp(
         ransac: reject outliers with RANSAC (threshold ``reproj_px``).
         refine: polish the inlier fit with ``cv2.solvePnPRefineLM``.
         guess_T_cur_ref: initial guess for the iterative method (e.g. constant velocity).
-        ransac_kernel: solver of RANSAC's minimal samples: None (``method`` itself, as
-            OpenCV does: 5-point samples), ``"p3p"`` or ``"ap3p"`` (4-point samples, about 3x
-            cheaper per hypothesis). The fit on all inliers is then ``method`` (for
-            ``"iterative"``: Levenberg-Marquardt from the RANSAC pose).
+        ransac_kernel: the RANSAC and its minimal solver: None (OpenCV's RANSAC with ``method``
+            itself on 5-point samples), ``"p3p"`` (the compiled P3P RANSAC of
+            ``estimation.p3p``, 4-point samples) or ``"ap3p"`` (OpenCV's RANSAC with its AP3P
+            kernel, 4-point samples). With a 4-point kernel the fit on all inliers is then
+            ``method`` (for ``"iterative"``: Levenberg-Marquardt from the RANSAC pose) and
+            ``guess_T_cur_ref`` is not used.
 
     Returns:
         :class:`Motion`; ``ok`` is False with fewer than ``min_inliers`` inliers.
@@ -83,9 +86,7 @@ def pnp(
     flags = PNP_METHODS[method]
     if ransac_kernel not in (None, "p3p", "ap3p"):
         raise EstimationError(f"unknown PnP RANSAC kernel {ransac_kernel!r}; use None, 'p3p' or 'ap3p'")
-    kernel_flags = (
-        flags if ransac_kernel is None else (cv2.SOLVEPNP_P3P if ransac_kernel == "p3p" else cv2.SOLVEPNP_AP3P)
-    )
+    four_point = ransac and ransac_kernel is not None
     use_guess = guess_T_cur_ref is not None and method == "iterative" and ransac_kernel is None
     rvec0 = tvec0 = None
     if use_guess:
@@ -93,7 +94,7 @@ def pnp(
         rvec0 = cv2.Rodrigues(guess_T_cur_ref[:3, :3])[0]
         tvec0 = guess_T_cur_ref[:3, 3].reshape(3, 1).copy()
     try:
-        if ransac:
+        if ransac and ransac_kernel != "p3p":
             ok, rvec, tvec, inl = cv2.solvePnPRansac(
                 obj,
                 img,
@@ -105,20 +106,25 @@ def pnp(
                 iterationsCount=max_iters,
                 reprojectionError=reproj_px,
                 confidence=confidence,
-                flags=kernel_flags,
+                flags=flags if ransac_kernel is None else cv2.SOLVEPNP_AP3P,
             )
             mask = np.zeros(n, dtype=bool)
             if ok and inl is not None:
                 mask[inl.ravel()] = True
-            if ok and kernel_flags != flags and method != "iterative" and np.count_nonzero(mask) >= 6:
-                ok, rvec, tvec = cv2.solvePnP(obj[mask], img[mask], Km, None, flags=flags)
-            elif ok and kernel_flags != flags and not refine:
-                rvec, tvec = cv2.solvePnPRefineLM(obj[mask], img[mask], Km, None, rvec, tvec)
+        elif ransac:
+            ok, R_cur_ref, t_cur_ref, mask = pnp_ransac(obj, img, Km, reproj_px, confidence, max_iters)
+            rvec, tvec = cv2.Rodrigues(R_cur_ref)[0], t_cur_ref.reshape(3, 1).copy()
         else:
             ok, rvec, tvec = cv2.solvePnP(
                 obj, img, Km, None, rvec=rvec0, tvec=tvec0, useExtrinsicGuess=use_guess, flags=flags
             )
             mask = np.ones(n, dtype=bool)
+        # After a 4-point kernel: the fit on all inliers with ``method`` (the iterative one by
+        # the refine block below, or here without it).
+        if ok and four_point and method != "iterative" and np.count_nonzero(mask) >= 6:
+            ok, rvec, tvec = cv2.solvePnP(obj[mask], img[mask], Km, None, flags=flags)
+        elif ok and four_point and not refine:
+            rvec, tvec = cv2.solvePnPRefineLM(obj[mask], img[mask], Km, None, rvec, tvec)
     except cv2.error as exc:
         logger.debug("PnP failed: %s", exc)
         return failed_motion(n)

@@ -229,7 +229,7 @@ class VoOptions:
         fb_max_px: forward-backward tolerance of tracks, px.
         klt_trust_prior_px: RGB-D: tracks within this of their prediction skip the backward check.
         pnp_method: ``"iterative"``, ``"epnp"`` or ``"sqpnp"``: PnP's fit on all inliers.
-        pnp_kernel: PnP RANSAC's minimal solver: None (``pnp_method``), ``"ap3p"`` or ``"p3p"``.
+        pnp_kernel: PnP RANSAC: None (OpenCV's, ``pnp_method`` samples), ``"ap3p"`` (OpenCV's) or ``"p3p"`` (ours).
         reproj_px: PnP RANSAC and inlier threshold, px.
         min_inliers: fewer inliers -> the estimate is rejected (the frame is ``PREDICTED``).
         max_speed_m_s, max_rate_rad_s: sanity limits of one step (faster -> ``PREDICTED``).
@@ -370,7 +370,10 @@ class VoOptions:
         if self.far_points not in (None, "drop", "rotation", "weighted"):
             raise EstimationError(f"VoOptions.far_points is {self.far_points!r}; use 'drop', 'rotation' or 'weighted'")
         if self.pnp_kernel not in (None, "p3p", "ap3p"):
-            raise EstimationError(f"VoOptions.pnp_kernel is {self.pnp_kernel!r}; use 'ap3p', 'p3p' or None")
+            raise EstimationError(
+                f"VoOptions.pnp_kernel is {self.pnp_kernel!r}; use None (OpenCV's RANSAC), 'ap3p' (OpenCV's, AP3P "
+                "samples) or 'p3p' (the compiled P3P RANSAC, estimation.p3p)"
+            )
         if self.max_features < 20:
             raise EstimationError(f"VoOptions.max_features is {self.max_features}; use at least 20 (300 is typical)")
         if (

@@ -53,6 +53,7 @@ PURE_MODULES = (
     "estimation/motion.py",
     "estimation/rigid.py",
     "estimation/pnp.py",
+    "estimation/p3p.py",
     "estimation/essential.py",
     "estimation/evaluation.py",
     "estimation/report/protocol.py",
