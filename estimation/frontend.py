@@ -228,7 +228,7 @@ class FrontEnd:
             method="iterative",
             reproj_px=self.opts.reproj_px,
             guess_T_cur_ref=T_cur_kf,
-            ransac_kernel="ap3p",
+            ransac_kernel=self.opts.pnp_kernel,
         )
         if not check.ok or np.count_nonzero(check.inliers) < need:
             return False

@@ -19,8 +19,11 @@ The RANSAC: samples of four points (OpenCV's ``cv::RNG`` seeded as on every Open
 input gives one output); the first three are solved, the fourth picks the solution and rejects
 the sample when even the best reprojects it beyond the threshold; a candidate is scored on every
 point (squared reprojection error in pixels against ``threshold^2``; behind the camera: an
-outlier) and kept only with strictly more inliers than the best so far; the iteration count
-adapts to the best inlier ratio as OpenCV's does (``estimation._ransac_kernel``).
+outlier) and kept only with strictly more inliers than the best so far; a new best is refitted
+on its inliers (Gauss-Newton on their reprojection, ``_LO_STEPS`` steps) and scored again, and
+the refit is kept unless it has fewer inliers (local optimisation: Chum, Matas & Kittler, "Locally
+Optimized RANSAC", DAGM 2003); the iteration count adapts to the best inlier ratio as OpenCV's
+does (``estimation._ransac_kernel``).
 
 Functions:
     pnp_ransac(points_ref, pts_px, K, threshold_px, ...)  the RANSAC pose and its inliers
@@ -36,6 +39,7 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
+from estimation._pose_kernel import pose_gauss_newton
 from estimation._ransac_kernel import RNG_SEED, rng_next, update_iterations
 from flightkit.errors import EstimationError
 
@@ -52,6 +56,8 @@ _LINE_EPS = 1e-10
 _ORTHONORMAL = 1e-9
 """A pose whose rotation is further than this from orthonormal (``R R^T - I``, largest entry) after
 its polish is rejected."""
+_LO_STEPS = 5
+"""Gauss-Newton steps of the local optimisation at most."""
 _GN_STEPS = 3
 """Gauss-Newton steps on the depths at most (each kept only when it lowers the residual)."""
 
@@ -398,6 +404,32 @@ def _error2(R: Any, t: Any, X: Any, uv: Any, i: int, fx: float, fy: float, cx: f
 
 
 @njit(cache=True)
+def _local_fit(X: Any, uv: Any, mask: Any, R: Any, t: Any, fx: float, fy: float, cx: float, cy: float) -> F64:
+    """The pose of ``R``, ``t`` refitted on the points of ``mask``: Gauss-Newton on their pixel
+    reprojection errors (plain least squares, ``_LO_STEPS`` steps at most), as a (4, 4) matrix."""
+    m = 0
+    for i in range(mask.shape[0]):
+        m += int(mask[i])
+    Xi = np.empty((m, 3))
+    ui = np.empty((m, 2))
+    k = 0
+    for i in range(mask.shape[0]):
+        if mask[i]:
+            for c in range(3):
+                Xi[k, c] = X[i, c]
+            ui[k, 0], ui[k, 1] = uv[i, 0], uv[i, 1]
+            k += 1
+    T0 = np.eye(4)
+    for r in range(3):
+        T0[r, 3] = t[r]
+        for c in range(3):
+            T0[r, c] = R[r, c]
+    disp = np.full(m, np.nan)
+    tw = np.ones(m)
+    return pose_gauss_newton(Xi, T0, ui, disp, tw, np.empty(0), fx, fy, cx, cy, 0.0, 1e9, _LO_STEPS, 1e-12, 6)
+
+
+@njit(cache=True)
 def _ransac(
     X: Any, uv: Any, fx: float, fy: float, cx: float, cy: float, thr2: float, confidence: float, max_iters: int
 ) -> tuple[int, F64, F64, Any]:
@@ -460,6 +492,22 @@ def _ransac(
                 for c in range(3):
                     best_R[r, c] = Rs[pick, r, c]
             best = good
+            if good >= 6:
+                # A new best: refit on its inliers and re-score (local optimisation), kept when it
+                # does not lose inliers.
+                T = _local_fit(X, uv, best_mask, best_R, best_t, fx, fy, cx, cy)
+                good2 = 0
+                for i in range(n):
+                    inl = _error2(T[:3, :3], T[:3, 3], X, uv, i, fx, fy, cx, cy) <= thr2
+                    mask[i] = inl
+                    good2 += int(inl)
+                if good2 >= good:
+                    best_mask, mask = mask, best_mask
+                    for r in range(3):
+                        best_t[r] = T[r, 3]
+                        for c in range(3):
+                            best_R[r, c] = T[r, c]
+                    best = good = good2
             niters = update_iterations(confidence, (n - good) / n, 4, niters)
     return best, best_R, best_t, best_mask
 

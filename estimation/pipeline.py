@@ -64,6 +64,7 @@ import numpy as np
 
 from estimation.frames import FramePreparer
 from estimation.odometry import VisualOdometry
+from estimation.p3p import pnp_ransac
 from estimation.vo_options import (
     EssentialOptions,
     FlowOptions,
@@ -126,6 +127,10 @@ def warm_up(method: Method | str) -> list[FramePose]:
         # stereo: a point seen 12 px further left in the right image is 2.08 m away (0.1 m baseline)
         right = np.ascontiguousarray(texture[4 : 4 + h, 2 * i + 12 : 2 * i + 12 + w]) if m is Method.STEREO else None
         poses.append(vo.process(i * 33_333_333, gray, right, None if m is Method.STEREO else depth))
+    if m is not Method.FLOW:
+        # PnP RANSAC (every keyframe method's fallback) may not run on these frames: once here.
+        X = np.c_[rng.uniform(-1.0, 1.0, (8, 2)), rng.uniform(1.5, 3.0, 8)]
+        pnp_ransac(X, X[:, :2] / X[:, 2:] * intr.fx + (intr.cx, intr.cy), vo.geo.K)
     return poses
 
 

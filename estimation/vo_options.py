@@ -229,7 +229,7 @@ class VoOptions:
         fb_max_px: forward-backward tolerance of tracks, px.
         klt_trust_prior_px: RGB-D: tracks within this of their prediction skip the backward check.
         pnp_method: ``"iterative"``, ``"epnp"`` or ``"sqpnp"``: PnP's fit on all inliers.
-        pnp_kernel: PnP RANSAC: None (OpenCV's, ``pnp_method`` samples), ``"ap3p"`` (OpenCV's) or ``"p3p"`` (ours).
+        pnp_kernel: PnP RANSAC: ``"p3p"`` (ours, compiled), None (OpenCV's, ``pnp_method`` samples) or ``"ap3p"``.
         reproj_px: PnP RANSAC and inlier threshold, px.
         min_inliers: fewer inliers -> the estimate is rejected (the frame is ``PREDICTED``).
         max_speed_m_s, max_rate_rad_s: sanity limits of one step (faster -> ``PREDICTED``).
@@ -276,7 +276,7 @@ class VoOptions:
     fb_max_px: float = 1.0
     klt_trust_prior_px: float = 2.0
     pnp_method: str = "iterative"
-    pnp_kernel: str | None = None
+    pnp_kernel: str | None = "p3p"
     reproj_px: float = 3.0
     min_inliers: int = 12
     max_speed_m_s: float = 40.0

@@ -414,6 +414,10 @@ def test_warm_up_runs_each_method_through_its_estimation_path(method: str) -> No
     # The texture moves 2 px a frame at 250 px focal length and ~2 m: 16 mm a frame, 64 mm in all.
     assert float(np.linalg.norm(poses[-1].T_world_camera[:3, 3])) == pytest.approx(0.064, rel=0.1)
     assert _pose_kernel.pose_gauss_newton.signatures and _kernels.project.signatures  # loaded, ready for live frames
+    if method != "flow":
+        from estimation import p3p
+
+        assert p3p._ransac.signatures  # PnP RANSAC, every keyframe method's fallback, loaded too
     if method == "rgbd-essential":
         from estimation import five_point
 
