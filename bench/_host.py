@@ -13,6 +13,13 @@ import os
 _TICK_S = 1.0 / os.sysconf("SC_CLK_TCK")
 
 
+def pin_one_cpu(cpu: int | None = None) -> None:
+    """Run this process on one CPU: ``cpu``, or the last one it may use (where Linux allows)."""
+    if hasattr(os, "sched_setaffinity"):
+        cpus = sorted(os.sched_getaffinity(0))
+        os.sched_setaffinity(0, {cpus[-1] if cpu is None else cpu})
+
+
 def _cpu_fields() -> list[str]:
     """The all-CPU line of /proc/stat, split (``cpu user nice system idle iowait irq softirq steal ...``)."""
     try:

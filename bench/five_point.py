@@ -30,6 +30,7 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import estimation.essential as essential  # noqa: E402
+from bench._host import pin_one_cpu  # noqa: E402
 from estimation.five_point import find_essential  # noqa: E402
 from estimation.pipeline import run_vo, warm_up  # noqa: E402
 from flightkit.datasets.registry import open_sequence  # noqa: E402
@@ -69,9 +70,7 @@ def main() -> int:
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--cpu", type=int, help="the CPU to pin the process to (default: the last one)")
     args = ap.parse_args()
-    if hasattr(os, "sched_setaffinity"):
-        cpus = sorted(os.sched_getaffinity(0))
-        os.sched_setaffinity(0, {cpus[-1] if args.cpu is None else args.cpu})
+    pin_one_cpu(args.cpu)
     cv2.setNumThreads(1)
     warm_up("rgbd-essential")
     print(f"OpenCV {cv2.__version__}, one thread, one CPU; median of {args.rounds} interleaved rounds")

@@ -34,6 +34,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench._host import pin_one_cpu  # noqa: E402
 from estimation.motion import make_T, rotation_angle_rad  # noqa: E402
 from estimation.p3p import pnp_ransac  # noqa: E402
 from estimation.pipeline import run_vo, warm_up  # noqa: E402
@@ -124,9 +125,7 @@ def main() -> int:
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--cpu", type=int, help="the CPU to pin the process to (default: the last one)")
     args = ap.parse_args()
-    if hasattr(os, "sched_setaffinity"):
-        cpus = sorted(os.sched_getaffinity(0))
-        os.sched_setaffinity(0, {cpus[-1] if args.cpu is None else args.cpu})
+    pin_one_cpu(args.cpu)
     cv2.setNumThreads(1)
     warm_up("rgbd-pnp")
     pnp_ransac(np.eye(4, 3), np.ones((4, 2)), np.eye(3))  # compiled (or loaded) before timing

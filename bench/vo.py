@@ -58,6 +58,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # `bench._synthetic` when run as a script
 
+from bench._host import pin_one_cpu  # noqa: E402
 from bench._synthetic import METHODS as SYNTHETIC_METHODS  # noqa: E402
 from bench._synthetic import SYNTHETIC, prerendered  # noqa: E402
 from estimation.baselines import run_plain  # noqa: E402
@@ -206,9 +207,7 @@ def main() -> int:
     args = ap.parse_args()
 
     cv2.setNumThreads(1)
-    if hasattr(os, "sched_setaffinity"):
-        cpus = sorted(os.sched_getaffinity(0))
-        os.sched_setaffinity(0, {cpus[-1] if args.cpu is None else args.cpu})
+    pin_one_cpu(args.cpu)
     keys = args.only.split(",") if args.only else list(SEQUENCES) + (list(SYNTHETIC) if args.synthetic else [])
     rows: list[dict[str, object]] = []
     for m in Method:  # untimed: load the compiled kernels (estimation/_kernels.py)

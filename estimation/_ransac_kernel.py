@@ -1,5 +1,6 @@
 """The bookkeeping of the compiled RANSACs (``estimation.five_point``, ``estimation.p3p``), in one
-place: OpenCV's random generator and its adaptive iteration count (numba, nopython, float64).
+place: OpenCV's random generator, its draw of a sample and its adaptive iteration count (numba,
+nopython, float64).
 
 Compiled once and cached on disk next to this module, as ``estimation._kernels``.
 """
@@ -24,6 +25,24 @@ def rng_next(state: Any) -> tuple[Any, int]:
     """One step of OpenCV's ``cv::RNG`` (multiply-with-carry): the new state and the 32-bit draw."""
     state = (state & _LOW32) * _RNG_COEFF + (state >> _SHIFT32)
     return state, int(state & _LOW32)
+
+
+@njit(cache=True)
+def draw_sample(state: Any, n: int, idx: Any) -> Any:
+    """Fill ``idx`` with distinct indices below ``n``, drawn one after the other (a repeat is drawn
+    again), as OpenCV's RANSAC draws a sample; returns the generator's new state."""
+    for i in range(idx.shape[0]):
+        while True:
+            state, r = rng_next(state)
+            j = r % n
+            dup = False
+            for k in range(i):
+                if idx[k] == j:
+                    dup = True
+            if not dup:
+                break
+        idx[i] = j
+    return state
 
 
 @njit(cache=True)

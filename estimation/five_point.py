@@ -32,7 +32,7 @@ from llvmlite import binding as llvm
 from numba import njit, types
 from numba.extending import get_cython_function_address
 
-from estimation._ransac_kernel import RNG_SEED, rng_next, update_iterations
+from estimation._ransac_kernel import RNG_SEED, draw_sample, update_iterations
 
 __all__ = ["find_essential"]
 
@@ -353,17 +353,9 @@ def _ransac(p1: Any, p2: Any, thr2: np.float32, confidence: float, max_iters: in
     niters = max(max_iters, 1)
     it = 0
     while it < niters:
+        state = draw_sample(state, n, idx)
         for i in range(5):
-            while True:
-                state, r = rng_next(state)
-                j = r % n
-                dup = False
-                for k in range(i):
-                    if idx[k] == j:
-                        dup = True
-                if not dup:
-                    break
-            idx[i] = j
+            j = idx[i]
             s1[i, 0], s1[i, 1] = p1[j, 0], p1[j, 1]
             s2[i, 0], s2[i, 1] = p2[j, 0], p2[j, 1]
         nm = _solve5(s1, s2, models, certain)

@@ -40,7 +40,7 @@ import numpy.typing as npt
 from numba import njit
 
 from estimation._pose_kernel import pose_gauss_newton
-from estimation._ransac_kernel import RNG_SEED, rng_next, update_iterations
+from estimation._ransac_kernel import RNG_SEED, draw_sample, update_iterations
 from flightkit.errors import EstimationError
 
 __all__ = ["pnp_ransac", "solve_p3p"]
@@ -457,21 +457,11 @@ def _ransac(
     it = 0
     while it < niters:
         it += 1
-        for i in range(4):
-            while True:
-                state, r = rng_next(state)
-                j = r % n
-                dup = False
-                for k in range(i):
-                    if idx[k] == j:
-                        dup = True
-                if not dup:
-                    break
-            idx[i] = j
-            if i < 3:
-                for k in range(3):
-                    ys[i, k] = Y[j, k]
-                    xs[i, k] = X[j, k]
+        state = draw_sample(state, n, idx)
+        for i in range(3):
+            for k in range(3):
+                ys[i, k] = Y[idx[i], k]
+                xs[i, k] = X[idx[i], k]
         ns = _solve(ys, xs, Rs, ts)
         pick, pick_e2 = -1, thr2
         for m in range(ns):
