@@ -57,6 +57,8 @@ class Tracks:
     Attributes:
         X_kf: (N, 3) the points in the keyframe's camera frame, m.
         px_kf: (N, 2) their pixels in the keyframe.
+        und_lens_kf: (N, 2) those pixels with the lens distortion removed (not moved to the
+            keyframe's stamp: ``CameraGeometry.at_stamp`` does that with the points' depths).
         px_cur, und_cur: (N, 2) their pixels in the current frame (as tracked; undistorted, at the
             frame's stamp).
         guess: the predicted ``T_cur_kf`` (constant velocity).
@@ -72,6 +74,7 @@ class Tracks:
 
     X_kf: F64
     px_kf: F32
+    und_lens_kf: F64
     px_cur: F32
     und_cur: F64
     guess: F64
@@ -112,7 +115,7 @@ class EssentialEstimator:
         """See :meth:`MotionEstimator.estimate`."""
         geo, o, eo = self.geo, self.opts, self.eo
         X_kf, und_cur, guess = t.X_kf, t.und_cur, t.guess
-        und_kf = geo.undistort(t.px_kf, t.rate_kf, t.X_kf[:, 2])
+        und_kf = geo.at_stamp(t.und_lens_kf, t.px_kf, t.rate_kf, t.X_kf[:, 2])
         parallax = median(np.linalg.norm(und_cur - und_kf, axis=1))
         n = len(t.px_cur)
         m = Motion(guess, np.zeros(n, dtype=bool), False)

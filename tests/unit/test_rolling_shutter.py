@@ -181,6 +181,7 @@ def test_a_measured_guess_asks_the_prior_check_for_its_own_share_of_inliers() ->
         return Tracks(
             np.ones((n, 3)),
             px,
+            px.astype(np.float64),
             px,
             px.astype(np.float64),
             np.eye(4),
