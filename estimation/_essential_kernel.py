@@ -11,6 +11,10 @@ that of ``cv2.solve(..., DECOMP_CHOLESKY)``) and the rotation updated by Rodrigu
 ``cv2.Rodrigues``). So the results agree with the numpy loop this replaced to ~1e-12 relative,
 not bit for bit (``tests/unit/test_essential_kernel.py`` keeps that loop and compares at 1e-9).
 
+:func:`scale_terms` is the elementwise part of ``estimation.essential._metric_scale_rays`` (the
+metric scale's per-point solutions, their median and the points near it), operation by operation
+as numpy did it: equal bit for bit; the weighted mean is left to numpy's ``@`` and ``sum``.
+
 Compiled once and cached on disk next to this module, as ``estimation._kernels``.
 """
 
@@ -25,7 +29,7 @@ from numba import njit
 from estimation._kernels import sampson_distance, sampson_jacobian
 from estimation._pose_kernel import _huber_weight, _rotvec_matrix
 
-__all__ = ["essential_lm", "essential_prior"]
+__all__ = ["essential_lm", "essential_prior", "scale_terms"]
 
 F64 = npt.NDArray[np.float64]
 
@@ -233,3 +237,60 @@ def essential_prior(
         if mask[i]:
             kept += 1
     return kept >= need, R, t, mask, x1
+
+
+@njit(cache=True)
+def _median_sorted(a: Any) -> float:
+    """``estimation.motion.median`` of a non-empty 1-D array (an order statistic, or the mean of
+    the two middle ones: bit for bit), NaN when it holds a NaN."""
+    b = np.sort(a)
+    n = b.shape[0]
+    if b[n - 1] != b[n - 1]:
+        return np.nan
+    h = n // 2
+    m: float = b[h] if n % 2 else (b[h - 1] + b[h]) / 2
+    return m
+
+
+@njit(cache=True)
+def scale_terms(R: Any, t: Any, x_cur: Any, X: Any, mask: Any) -> tuple[bool, float, F64, F64]:
+    """The metric scale ``s`` of a unit translation ``t`` per match ``i`` of ``mask`` whose point
+    ``X[i]`` (reference frame) is finite with ``z > 0``: ``x cross (R X + s t) = 0`` with the current
+    ray ``x = (x_cur[i, 0], x_cur[i, 1], 1)``, solved where ``b = |x cross t|^2 > 1e-12``. Returns ``(ok,
+    median, s_near, b_near)``: the solutions within ``3 * 1.4826 * (MAD + 1e-9)`` of their median
+    and their ``b``; ``ok`` False when fewer than 3 matches are valid or fewer than 3 solve."""
+    r00, r01, r02 = R[0, 0], R[0, 1], R[0, 2]
+    r10, r11, r12 = R[1, 0], R[1, 1], R[1, 2]
+    r20, r21, r22 = R[2, 0], R[2, 1], R[2, 2]
+    t0, t1, t2 = t[0], t[1], t[2]
+    n = X.shape[0]
+    s_all = np.empty(n)
+    bb_all = np.empty(n)
+    valid = 0
+    m = 0
+    for i in range(n):
+        X0, X1, X2 = X[i, 0], X[i, 1], X[i, 2]
+        if not (mask[i] and np.isfinite(X0) and np.isfinite(X1) and np.isfinite(X2) and X2 > 0):
+            continue
+        valid += 1
+        u, v = x_cur[i, 0], x_cur[i, 1]
+        y0 = r00 * X0 + r01 * X1 + r02 * X2
+        y1 = r10 * X0 + r11 * X1 + r12 * X2
+        y2 = r20 * X0 + r21 * X1 + r22 * X2
+        # a = x cross R X, b = x cross t, x = (u, v, 1).
+        a0, a1, a2 = v * y2 - y1, y0 - u * y2, u * y1 - v * y0
+        b0, b1, b2 = v * t2 - t1, t0 - u * t2, u * t1 - v * t0
+        bb = b0 * b0 + b1 * b1 + b2 * b2
+        if bb > 1e-12:
+            s_all[m] = -(a0 * b0 + a1 * b1 + a2 * b2) / bb
+            bb_all[m] = bb
+            m += 1
+    empty = np.empty(0)
+    if valid < 3 or m < 3:
+        return False, 0.0, empty, empty
+    s_all = s_all[:m]
+    s_med = _median_sorted(s_all)
+    dev = np.abs(s_all - s_med)
+    lim = 3.0 * 1.4826 * (_median_sorted(dev) + 1e-9)
+    near = dev < lim
+    return True, s_med, s_all[near], bb_all[:m][near]

@@ -19,7 +19,7 @@ from scipy.spatial.transform import Rotation
 
 from estimation import _essential_kernel, _kernels
 from estimation.essential import _metric_scale_rays, essential_from_prior, refine_essential
-from estimation.motion import Motion, make_T
+from estimation.motion import Motion, make_T, median
 
 F, CX, CY = 525.0, 319.5, 239.5
 K = np.array([[F, 0.0, CX], [0.0, F + 0.5, CY], [0.0, 0.0, 1.0]])
@@ -102,6 +102,35 @@ def _refine_essential_reference(  # noqa: PLR0913
     return R, t
 
 
+def _metric_scale_rays_reference(
+    R: np.ndarray, t: np.ndarray, xu: np.ndarray, xv: np.ndarray, X: np.ndarray
+) -> float | None:
+    """``estimation.essential._metric_scale_rays`` as numpy wrote it, on the valid points only."""
+    if len(X) < 3:
+        return None
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R.tolist()
+    t0, t1, t2 = t.tolist()
+    X0, X1, X2 = X[:, 0], X[:, 1], X[:, 2]
+    y0 = r00 * X0 + r01 * X1 + r02 * X2
+    y1 = r10 * X0 + r11 * X1 + r12 * X2
+    y2 = r20 * X0 + r21 * X1 + r22 * X2
+    a0, a1, a2 = xv * y2 - y1, y0 - xu * y2, xu * y1 - xv * y0
+    b0, b1, b2 = xv * t2 - t1, t0 - xu * t2, xu * t1 - xv * t0
+    bb = b0 * b0 + b1 * b1 + b2 * b2
+    good = bb > 1e-12
+    if np.count_nonzero(good) < 3:
+        return None
+    bb = bb[good]
+    s_all = -(a0 * b0 + a1 * b1 + a2 * b2)[good] / bb
+    s_med = median(s_all)
+    dev = np.abs(s_all - s_med)
+    near = dev < 3.0 * 1.4826 * (median(dev) + 1e-9)
+    w = bb[near]
+    wsum = float(w.sum())
+    s = float(s_all[near] @ w) / wsum if wsum > 0 else s_med
+    return s if math.isfinite(s) else None
+
+
 def _essential_from_prior_reference(  # noqa: PLR0913
     p0: np.ndarray,
     p1: np.ndarray,
@@ -136,7 +165,7 @@ def _essential_from_prior_reference(  # noqa: PLR0913
     if np.count_nonzero(mask) < need:
         return None
     valid = mask & np.isfinite(X).all(axis=1) & (X[:, 2] > 0)
-    s = _metric_scale_rays(R, t, x1[valid, 0], x1[valid, 1], X[valid])
+    s = _metric_scale_rays_reference(R, t, x1[valid, 0], x1[valid, 1], X[valid])
     if s is None:
         return None
     return Motion(make_T(R, s * t), mask, True)
@@ -239,3 +268,22 @@ def test_essential_from_prior_equals_numpy(n: int) -> None:
         assert np.array_equal(m.inliers, m_ref.inliers)
         assert np.allclose(m.T_cur_ref, m_ref.T_cur_ref, rtol=1e-9, atol=1e-9)
     assert declined < 12  # the prediction explained some of them
+
+
+@pytest.mark.parametrize("n", [0, 2, 3, 4, 7, 8, 60, 201, 457])
+def test_metric_scale_equals_numpy_bit_for_bit(n: int) -> None:
+    rng = np.random.default_rng(3000 + n)
+    for trial in range(20):
+        p0, p1, X, T = _scene(rng, n, [0.005, 0.02, 0.1][trial % 3], 0.4, 0.2)
+        X = X * rng.uniform(0.9, 1.1, (n, 1))  # depth noise
+        X[rng.random(n) < 0.1, rng.integers(0, 3)] = [np.nan, np.inf, -1.0][trial % 3]
+        mask = rng.random(n) < [1.0, 0.8, 0.1][trial % 3]
+        R = T[:3, :3]
+        t = T[:3, 3] / np.linalg.norm(T[:3, 3]) * [1.0, -1.0][trial % 2]
+        x1 = _rays(p1)
+        valid = mask & np.isfinite(X).all(axis=1) & (X[:, 2] > 0)
+        s_ref = _metric_scale_rays_reference(R, t, x1[valid, 0], x1[valid, 1], X[valid])
+        s = _metric_scale_rays(R, t, x1, X, mask)
+        assert s == s_ref  # both None, or the same float
+        if n >= 60 and trial % 3 == 0:
+            assert s is not None and abs(abs(s) - np.linalg.norm(T[:3, 3])) < 0.2 * np.linalg.norm(T[:3, 3])
