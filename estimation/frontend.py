@@ -190,7 +190,7 @@ class FrontEnd:
             return
         self.kf_rate = rate
         if self.kf_depth is not None and g.use_depth_images:
-            X, ok = g.depth_points(self.kf_depth, self.kf_px, rate)
+            X, ok = g.depth_points(self.kf_depth, self.kf_px, rate, self.kf_und_lens)
             self.kf_X = np.where(ok[:, None], X, self.kf_X)
         else:
             self.kf_X = g.shutter.points(self.kf_X, self.kf_px[:, 1], rate)

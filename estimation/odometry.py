@@ -244,6 +244,7 @@ class VisualOdometry:
             front.kf_px[idx],
             front.kf_und_lens[idx],
             px_cur,
+            und_lens,
             self.geo.at_stamp(und_lens, px_cur, rate, z_cur),
             T_guess_cur_kf,
             has_prior,

@@ -184,6 +184,7 @@ def test_a_measured_guess_asks_the_prior_check_for_its_own_share_of_inliers() ->
             px.astype(np.float64),
             px,
             px.astype(np.float64),
+            px.astype(np.float64),
             np.eye(4),
             True,
             gray,
@@ -195,3 +196,24 @@ def test_a_measured_guess_asks_the_prior_check_for_its_own_share_of_inliers() ->
     assert tracks(None).prior_fraction(0.9) == 0.9  # a prediction: the options' share
     assert tracks(80).prior_fraction(0.9) == pytest.approx(0.72)  # 90 % of the 80 inliers
     assert tracks(100).prior_fraction(0.9) == 0.9  # never more than the options ask
+
+
+@pytest.mark.parametrize("readout_s", [0.0, READOUT_S])
+def test_depth_points_take_the_callers_lens_undistortion_bit_for_bit(readout_s: float) -> None:
+    """``CameraGeometry.depth_points`` given ``undistort(px)`` (what the odometry computed once for
+    both measurements) returns what it computes by itself, bit for bit."""
+    from estimation.camera_geometry import CameraGeometry
+
+    intr = CameraIntrinsics(FX, FX, CX, CY, W, H, dist=(0.25, -0.5, 0.001, -0.002, 0.2), readout_s=readout_s)
+    geo = CameraGeometry(intr, None, intr, VoOptions().for_camera(FX, W), use_depth_images=True)
+    rng = np.random.default_rng(9)
+    depth = rng.uniform(1.0, 3.0, (H // 40, W // 40)).astype(np.float32).repeat(40, axis=0).repeat(40, axis=1)
+    px = np.c_[rng.uniform(5, W - 5, 300), rng.uniform(5, H - 5, 300)].astype(np.float32)
+    und = geo.undistort(px)
+    assert np.abs(und - px).max() > 1.0  # the lens moves them
+    for rate in (None, CameraRate(np.array([0.9, -1.1, 0.4]), np.array([0.6, 0.3, -0.7]))):
+        X, ok = geo.depth_points(depth, px, rate)
+        X2, ok2 = geo.depth_points(depth, px, rate, und)
+        assert np.count_nonzero(ok) > 100
+        np.testing.assert_array_equal(ok2, ok)
+        np.testing.assert_array_equal(X2, X)
