@@ -117,7 +117,8 @@ class EssentialEstimator:
         geo, o, eo = self.geo, self.opts, self.eo
         X_kf, und_cur, guess = t.X_kf, t.und_cur, t.guess
         und_kf = geo.at_stamp(t.und_lens_kf, t.px_kf, t.rate_kf, t.X_kf[:, 2])
-        parallax = median(np.linalg.norm(und_cur - und_kf, axis=1))
+        d = und_cur - und_kf
+        parallax = median(np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]))  # np.linalg.norm(d, axis=1)'s sums
         n = len(t.px_cur)
         m = Motion(guess, np.zeros(n, dtype=bool), False)
         m_prior = None

@@ -217,3 +217,25 @@ def test_depth_points_take_the_callers_lens_undistortion_bit_for_bit(readout_s: 
         assert np.count_nonzero(ok) > 100
         np.testing.assert_array_equal(ok2, ok)
         np.testing.assert_array_equal(X2, X)
+
+
+def test_pixels_equal_the_numpy_formula_bit_for_bit() -> None:
+    """:meth:`RollingShutter.pixels` (one compiled loop, row times and missing depths inside it) is
+    the first-order model written in numpy, operation by operation."""
+    rng = np.random.default_rng(12)
+    shutter = RollingShutter(READOUT_S, H, FX, FX + 1.0, CX, CY)
+    rate = CameraRate(np.array([0.9, -1.1, 0.4]), np.array([0.6, 0.3, -0.7]))
+    und = np.c_[rng.uniform(0, W, 300), rng.uniform(0, H, 300)]
+    px = (und + rng.normal(scale=2.0, size=und.shape)).astype(np.float32)
+    z = rng.uniform(0.5, 4.0, 300)
+    z[::7], z[::11] = np.nan, np.inf
+    w, v = rate.omega_rad_s, rate.velocity_m_s
+    for z_m in (None, z, np.c_[z, z][:, 1]):  # none, contiguous, strided
+        dt = (px[:, 1].astype(np.float64) - 0.5 * (H - 1)) * (READOUT_S / H)
+        zz = np.full(300, np.inf) if z_m is None else np.where(np.isfinite(z_m), z_m, 1e9)
+        x, y, inv_z = (und[:, 0] - CX) / FX, (und[:, 1] - CY) / (FX + 1.0), 1.0 / zz
+        bx = x + dt * (w[1] - w[2] * y + v[0] * inv_z)
+        by = y + dt * (w[2] * x - w[0] + v[1] * inv_z)
+        bz = 1.0 + dt * (w[0] * y - w[1] * x + v[2] * inv_z)
+        ref = np.c_[FX * bx / bz + CX, (FX + 1.0) * by / bz + CY]
+        np.testing.assert_array_equal(shutter.pixels(und, px[:, 1], rate, z_m), ref)
