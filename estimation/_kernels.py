@@ -11,8 +11,9 @@ by operation, so the results are equal bit for bit (``tests/unit/test_kernels.py
 details make that hold: elementwise IEEE operations are the same in numba and numpy, and the
 rigid transform ``X @ R.T + t`` that numpy hands to OpenBLAS is a chain of fused
 multiply-adds in the order of the inner index (OpenBLAS's kernels on FMA machines), which
-:func:`_fma` spells out. The pose polish's Gauss-Newton loop, which departs from this on
-purpose, is in ``estimation._pose_kernel``.
+:func:`_fma` spells out. The pose polish's Gauss-Newton loop and the essential matrix's
+Levenberg-Marquardt loop, which depart from this on purpose (their normal equations are summed
+point by point), are in ``estimation._pose_kernel`` and ``estimation._essential_kernel``.
 
 Compiled once and cached on disk next to this module (``__pycache__``); the first import in
 a fresh environment compiles them (~10 s of CPU once: `warm_up` of all five methods took

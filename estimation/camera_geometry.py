@@ -141,12 +141,15 @@ class CameraGeometry:
             return und
         return self.shutter.pixels(und, px[:, 1], rate, z_m)
 
-    def depth_points(self, depth_m: F32, px: F32, rate: CameraRate | None = None) -> tuple[F64, Bool]:
+    def depth_points(
+        self, depth_m: F32, px: F32, rate: CameraRate | None = None, und_lens: F64 | None = None
+    ) -> tuple[F64, Bool]:
         """3D points (camera frame at the image's stamp) of image pixels from the depth image, and
-        which have depth; ``rate``: the camera's at that image (a rolling shutter)."""
+        which have depth; ``rate``: the camera's at that image (a rolling shutter); ``und_lens``:
+        :meth:`undistort` of ``px`` without a rate, when the caller has it (not recomputed)."""
         z = self.depth_at(depth_m, px)
         ok = np.isfinite(z)
-        und = self.undistort(px)
+        und = self.undistort(px) if und_lens is None else und_lens
         if self.shutter is None or rate is None or not len(px):
             return self.backproject(und, np.where(ok, z, 1.0)), ok
         # The depth image is read where the point is at the stamp: taken as a global-shutter image

@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from estimation import _kernels
+from estimation import _essential_kernel, _kernels
 from estimation.five_point import find_essential
 from estimation.motion import Motion, failed_motion, make_T, median
 from flightkit.errors import EstimationError
@@ -122,32 +122,22 @@ def _metric_scale(R: F64, t: F64, p1: F64, X: F64, mask: Mask, Km: F64) -> float
     return s if math.isfinite(s) else None
 
 
-def _metric_scale_rays(R: F64, t: F64, xu: F64, xv: F64, X: F64) -> float | None:
-    """:func:`_metric_scale` on (N,) columns of normalised current rays ``(xu, xv, 1)`` and
-    valid reference points ``X`` (the same estimator, ~3x cheaper)."""
-    if len(X) < 3:
+def _metric_scale_rays(R: F64, t: F64, x_cur: F64, X: F64, mask: Mask) -> float | None:
+    """:func:`_metric_scale` of the matches ``mask`` whose points ``X`` are valid (finite, z > 0),
+    from their normalised current rays ``x_cur`` ((N, 2) or (N, 3): ``u, v``): the same
+    estimator in one compiled call (``estimation._essential_kernel.scale_terms``, equal bit for
+    bit to the numpy expressions it replaced) and the weighted mean."""
+    ok, s_med, s_near, w = _essential_kernel.scale_terms(
+        np.ascontiguousarray(R, dtype=np.float64),
+        np.ascontiguousarray(t, dtype=np.float64),
+        x_cur,
+        np.ascontiguousarray(X, dtype=np.float64),
+        mask,
+    )
+    if not ok:
         return None
-    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R.tolist()
-    t0, t1, t2 = t.tolist()
-    X0, X1, X2 = X[:, 0], X[:, 1], X[:, 2]
-    y0 = r00 * X0 + r01 * X1 + r02 * X2
-    y1 = r10 * X0 + r11 * X1 + r12 * X2
-    y2 = r20 * X0 + r21 * X1 + r22 * X2
-    # a = x cross R X, b = x cross t, x = (xu, xv, 1).
-    a0, a1, a2 = xv * y2 - y1, y0 - xu * y2, xu * y1 - xv * y0
-    b0, b1, b2 = xv * t2 - t1, t0 - xu * t2, xu * t1 - xv * t0
-    bb = b0 * b0 + b1 * b1 + b2 * b2
-    good = bb > 1e-12
-    if np.count_nonzero(good) < 3:
-        return None
-    bb = bb[good]
-    s_all = -(a0 * b0 + a1 * b1 + a2 * b2)[good] / bb
-    s_med = median(s_all)
-    dev = np.abs(s_all - s_med)
-    near = dev < 3.0 * 1.4826 * (median(dev) + 1e-9)
-    w = bb[near]
     wsum = float(w.sum())
-    s = float(s_all[near] @ w) / wsum if wsum > 0 else s_med
+    s = float(s_near @ w) / wsum if wsum > 0 else s_med
     return s if math.isfinite(s) else None
 
 
@@ -190,12 +180,13 @@ def pose_from_essential(
     t: F64 = np.asarray(t_col, dtype=np.float64).ravel()
     best: Motion | None = None
     ok_X = np.isfinite(X).all(axis=1) & (X[:, 2] > 0)
-    valid = inliers & ok_X
-    xu = (p1[valid, 0] - Km[0, 2]) / Km[0, 0]
-    xv = (p1[valid, 1] - Km[1, 2]) / Km[1, 1]
+    x_cur = np.empty((len(p1), 2))
+    x_cur[:, 0] = (p1[:, 0] - Km[0, 2]) / Km[0, 0]
+    x_cur[:, 1] = (p1[:, 1] - Km[1, 2]) / Km[1, 1]
+    inl = np.ascontiguousarray(inliers, dtype=np.bool_)
     for R_cand in (R1, R2):
         R = np.asarray(R_cand, dtype=np.float64)
-        s = _metric_scale_rays(R, t, xu, xv, X[valid])
+        s = _metric_scale_rays(R, t, x_cur, X, inl)
         if s is None:
             continue
         T = make_T(R, s * t)
@@ -234,37 +225,6 @@ def _cross(a: F64, b: F64) -> F64:
     return out
 
 
-def _sampson_residual(R: F64, t: F64, x_ref: F64, x_cur: F64, f_px: float) -> F64:
-    """Signed Sampson distance (pixels) of each match to the epipolar geometry of (R, t)."""
-    r: F64 = _kernels.sampson_distance(*_rays(R, t, x_ref, x_cur), float(f_px), True)
-    return r
-
-
-def _sampson_jacobian(R: F64, t: F64, x_ref: F64, x_cur: F64, f_px: float) -> tuple[F64, F64]:
-    """Signed Sampson residuals (px) and their full Jacobian (N, 6) in (w, dt): a left
-    rotation increment ``R <- exp(w) R`` and an unconstrained translation increment
-    (numerator and denominator both differentiated: at small baselines the denominator's
-    change is as large as the numerator's). One compiled loop over the matches."""
-    J = np.empty((len(x_ref), 6))
-    r: F64 = _kernels.sampson_jacobian(*_rays(R, t, x_ref, x_cur), float(f_px), J)
-    return r, J
-
-
-def _unit_cross(a: npt.ArrayLike, b: npt.ArrayLike) -> F64:
-    """Normalised cross product of two 3-vectors."""
-    (a0, a1, a2), (b0, b1, b2) = np.asarray(a).tolist(), np.asarray(b).tolist()
-    c = np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
-    return c / math.sqrt(float(c @ c))
-
-
-def _huber_cost(r: F64, huber: float) -> float:
-    """Sum of the Huber function of the residuals: ``a^2 / 2`` within ``huber``, ``huber (a - huber / 2)``
-    beyond (as ``m (2a - m) / 2`` with ``m = min(a, huber)``: one dot product)."""
-    a = np.abs(r)
-    m = np.minimum(a, huber)
-    return 0.5 * float(m @ (a + a - m))
-
-
 def refine_essential(
     R: F64,
     t: F64,
@@ -277,9 +237,11 @@ def refine_essential(
     """Gauss-Newton on the Sampson distance over the 5 degrees of freedom of an essential
     matrix: a left rotation increment (3) and the unit translation moved in its tangent
     plane (2). Huber-weighted (IRLS, threshold in pixels), analytic Jacobian of the whole
-    distance (numerator and denominator), vectorised numpy. A step is kept only when it
-    lowers the robust cost (else it is damped, Levenberg-Marquardt), so the result is never
-    worse than the start.
+    distance (numerator and denominator). A step is kept only when it lowers the robust cost
+    (else it is damped, Levenberg-Marquardt), so the result is never worse than the start.
+    One compiled call (``estimation._essential_kernel.essential_lm``); it agrees with the numpy
+    loop it replaced to ~1e-12 relative, not bit for bit (the order of the normal equations'
+    sums, the solve).
 
     Args:
         R, t: the start (t any length; only its direction is used).
@@ -291,56 +253,12 @@ def refine_essential(
     Returns:
         ``(R, t)`` with ``|t| = 1``.
     """
-    R = np.array(R, dtype=np.float64)
-    t = np.asarray(t, dtype=np.float64).reshape(3)
-    t = t / np.linalg.norm(t)
-    if len(x_ref) < 5:
-        return R, t
-    r, J6 = _sampson_jacobian(R, t, x_ref, x_cur, f_px)
-    cost = _huber_cost(r, huber_px)
-    lam = 0.0
-    B = np.empty((3, 2))
-    for it in range(iterations):
-        if it:
-            r, J6 = _sampson_jacobian(R, t, x_ref, x_cur, f_px)
-        # Tangent basis of the unit translation.
-        b1 = _unit_cross(t, (1.0, 0.0, 0.0) if abs(t[0]) < 0.9 else (0.0, 1.0, 0.0))
-        B[:, 0] = b1
-        B[:, 1] = _unit_cross(t, b1)
-        J = np.empty((len(r), 5))
-        J[:, :3] = J6[:, :3]
-        J[:, 3:] = J6[:, 3:] @ B
-        w = huber_px / np.maximum(np.abs(r), huber_px)
-        Jw = J * w[:, None]
-        H = Jw.T @ J
-        g = (Jw.T @ r).reshape(5, 1)
-        accepted = False
-        for _ in range(4):
-            A = H
-            if lam > 0:
-                A = H.copy()
-                A.flat[::6] *= 1.0 + lam  # Levenberg-Marquardt: the diagonal scaled up
-            # Cholesky through OpenCV: ~4 us against ~14 for np.linalg.solve on a 5x5.
-            ok, sol = cv2.solve(A, g, flags=cv2.DECOMP_CHOLESKY)
-            if not ok:
-                break
-            dx = -sol.ravel()
-            R_n = cv2.Rodrigues(dx[:3])[0] @ R
-            t_n = t + B @ dx[3:]
-            t_n /= np.linalg.norm(t_n)
-            r_n = _sampson_residual(R_n, t_n, x_ref, x_cur, f_px)
-            cost_n = _huber_cost(r_n, huber_px)
-            if cost_n < cost:
-                gain = cost - cost_n
-                R, t, cost = R_n, t_n, cost_n
-                lam *= 0.1
-                accepted = True
-                break
-            lam = max(10.0 * lam, 1e-3)
-        # Converged: the step no longer lowers the cost by a part in 10^4.
-        if not accepted or gain < 1e-4 * cost:
-            break
-    return R, t
+    R_out: F64
+    t_out: F64
+    R_out, t_out = _essential_kernel.essential_lm(
+        *_rays(R, t, x_ref, x_cur), float(f_px), float(huber_px), int(iterations)
+    )
+    return R_out, t_out
 
 
 def essential_from_prior(
@@ -375,24 +293,24 @@ def essential_from_prior(
     t_g = T_guess[:3, 3]
     if n < need or float(t_g @ t_g) < 1e-12:
         return None
-    fx, fy, cx, cy = Km[0, 0], Km[1, 1], Km[0, 2], Km[1, 2]
-    f = 0.5 * (fx + fy)
-    x0 = np.ones((n, 3))
-    x0[:, 0] = (p0[:, 0] - cx) / fx
-    x0[:, 1] = (p0[:, 1] - cy) / fy
-    x1 = np.ones((n, 3))
-    x1[:, 0] = (p1[:, 0] - cx) / fx
-    x1[:, 1] = (p1[:, 1] - cy) / fy
-    R, t = T_guess[:3, :3], t_g
-    gate = sampson_px(R, t, x0, x1, f) < gate_px
-    if np.count_nonzero(gate) < need:
+    # Normalised rays, the gate, the Gauss-Newton loop and the inlier test: one compiled call.
+    ok, R, t, mask, x1 = _essential_kernel.essential_prior(
+        p0,
+        p1,
+        float(Km[0, 0]),
+        float(Km[1, 1]),
+        float(Km[0, 2]),
+        float(Km[1, 2]),
+        np.ascontiguousarray(T_guess[:3, :3], dtype=np.float64),
+        np.ascontiguousarray(t_g, dtype=np.float64),
+        float(gate_px),
+        float(threshold_px),
+        float(need),
+        int(iterations),
+    )
+    if not ok:
         return None
-    R, t = refine_essential(R, t, x0[gate], x1[gate], f, huber_px=threshold_px, iterations=iterations)
-    mask = sampson_px(R, t, x0, x1, f) < threshold_px
-    if np.count_nonzero(mask) < need:
-        return None
-    valid = mask & np.isfinite(X).all(axis=1) & (X[:, 2] > 0)
-    s = _metric_scale_rays(R, t, x1[valid, 0], x1[valid, 1], X[valid])
+    s = _metric_scale_rays(R, t, x1, X, mask)
     if s is None:
         return None
     return Motion(make_T(R, s * t), mask, True)

@@ -57,8 +57,10 @@ class Tracks:
     Attributes:
         X_kf: (N, 3) the points in the keyframe's camera frame, m.
         px_kf: (N, 2) their pixels in the keyframe.
-        px_cur, und_cur: (N, 2) their pixels in the current frame (as tracked; undistorted, at the
-            frame's stamp).
+        und_lens_kf: (N, 2) those pixels with the lens distortion removed (not moved to the
+            keyframe's stamp: ``CameraGeometry.at_stamp`` does that with the points' depths).
+        px_cur, und_lens_cur, und_cur: (N, 2) their pixels in the current frame (as tracked;
+            without the lens distortion; that moved to the frame's stamp).
         guess: the predicted ``T_cur_kf`` (constant velocity).
         has_prior: the prediction comes from a measured motion (not the identity of a start).
         gray, right_gray, depth_m: the current frame's images (right or depth None when absent).
@@ -72,7 +74,9 @@ class Tracks:
 
     X_kf: F64
     px_kf: F32
+    und_lens_kf: F64
     px_cur: F32
+    und_lens_cur: F64
     und_cur: F64
     guess: F64
     has_prior: bool
@@ -112,8 +116,9 @@ class EssentialEstimator:
         """See :meth:`MotionEstimator.estimate`."""
         geo, o, eo = self.geo, self.opts, self.eo
         X_kf, und_cur, guess = t.X_kf, t.und_cur, t.guess
-        und_kf = geo.undistort(t.px_kf, t.rate_kf, t.X_kf[:, 2])
-        parallax = median(np.linalg.norm(und_cur - und_kf, axis=1))
+        und_kf = geo.at_stamp(t.und_lens_kf, t.px_kf, t.rate_kf, t.X_kf[:, 2])
+        d = und_cur - und_kf
+        parallax = median(np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]))  # np.linalg.norm(d, axis=1)'s sums
         n = len(t.px_cur)
         m = Motion(guess, np.zeros(n, dtype=bool), False)
         m_prior = None
@@ -179,6 +184,7 @@ class EssentialEstimator:
                 t.prior_fraction(eo.prior_min_fraction),
                 t.var_kf,
                 t.rate,
+                t.und_lens_cur,
             )
             if m_pp is not None:
                 self.paths["pnp-prior"] += 1
@@ -196,7 +202,16 @@ class EssentialEstimator:
                 ransac_kernel=o.pnp_kernel,
             )
         return self.polisher.polish(
-            m, X_kf, t.px_cur, und_cur, t.depth_m, t.gray, t.right_gray, var_kf=t.var_kf, rate=t.rate
+            m,
+            X_kf,
+            t.px_cur,
+            und_cur,
+            t.depth_m,
+            t.gray,
+            t.right_gray,
+            var_kf=t.var_kf,
+            rate=t.rate,
+            und_lens=t.und_lens_cur,
         )
 
 
@@ -218,7 +233,7 @@ class KabschEstimator:
         """See :meth:`MotionEstimator.estimate`."""
         geo, o, ko = self.geo, self.opts, self.ko
         assert t.depth_m is not None
-        X_cur, ok = geo.depth_points(t.depth_m, t.px_cur, t.rate)
+        X_cur, ok = geo.depth_points(t.depth_m, t.px_cur, t.rate, t.und_lens_cur)
         z = np.where(ok, X_cur[:, 2], np.nan)
         idx = np.flatnonzero(ok)
         all_ok = len(idx) == len(ok)  # usual: no copies of the pairs
@@ -312,6 +327,7 @@ class PnpEstimator:
                 t.prior_fraction(po.prior_min_fraction),
                 None if t.var_kf is None else t.var_kf[idx],
                 t.rate,
+                t.und_lens_cur[idx],
             )
             if m_prior is not None:
                 self.paths["pnp-prior"] += 1
@@ -344,6 +360,7 @@ class PnpEstimator:
                 t.right_gray,
                 var_kf=None if t.var_kf is None else t.var_kf[mask],
                 rate=t.rate,
+                und_lens=t.und_lens_cur[mask],
             )
             self.polisher.remap(mask)
         return Motion(T, mask, m.ok)

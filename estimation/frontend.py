@@ -47,6 +47,10 @@ def grid_detector(geometry: CameraGeometry, options: VoOptions, score: str = "fa
 class FrontEnd:
     """Detection, tracking and the keyframe's points for the keyframe methods.
 
+    ``kf_und_lens`` holds the keyframe pixels ``kf_px`` with the lens distortion removed
+    (``CameraGeometry.undistort`` without a rate), computed once per keyframe for the
+    estimators, which move them to the keyframe's stamp (``CameraGeometry.at_stamp``).
+
     Args:
         geometry: the run's :class:`CameraGeometry`.
         options: the shared :class:`VoOptions`.
@@ -63,6 +67,7 @@ class FrontEnd:
         # weights, where they were tracked to last, and how many it started with.
         self.kf_X = np.empty((0, 3))
         self.kf_px = np.empty((0, 2), np.float32)
+        self.kf_und_lens = np.empty((0, 2))
         self.kf_ids = np.empty(0, np.int64)
         self.kf_w = np.empty(0)
         self.trk_px = np.empty((0, 2), np.float32)
@@ -105,6 +110,7 @@ class FrontEnd:
     def keep(self, keep: Bool, px: F32) -> None:
         """Keep only the tracks ``keep`` (their current pixels ``px``)."""
         self.kf_X, self.kf_px, self.kf_ids = self.kf_X[keep], self.kf_px[keep], self.kf_ids[keep]
+        self.kf_und_lens = self.kf_und_lens[keep]
         self.kf_w = self.kf_w[keep]
         self.trk_px = np.ascontiguousarray(px[keep])
 
@@ -166,6 +172,7 @@ class FrontEnd:
             np.concatenate([keep_px[ok_keep].astype(np.float32), new_px[ok_n]]), dtype=np.float32
         )
         self.kf_ids = np.concatenate([keep_ids[ok_keep], ids_new[ok_n]]).astype(np.int64)
+        self.kf_und_lens = self.geo.undistort(self.kf_px)
         self.trk_px = self.kf_px.copy()
         self.kf_n0 = len(self.kf_X)
         self.T_world_kf = T_world_cam.copy()
@@ -183,7 +190,7 @@ class FrontEnd:
             return
         self.kf_rate = rate
         if self.kf_depth is not None and g.use_depth_images:
-            X, ok = g.depth_points(self.kf_depth, self.kf_px, rate)
+            X, ok = g.depth_points(self.kf_depth, self.kf_px, rate, self.kf_und_lens)
             self.kf_X = np.where(ok[:, None], X, self.kf_X)
         else:
             self.kf_X = g.shutter.points(self.kf_X, self.kf_px[:, 1], rate)
@@ -235,6 +242,7 @@ class FrontEnd:
         ok[:] = False
         ok[sel[check.inliers]] = True
         self.kf_X, self.kf_px, self.kf_ids, self.kf_w = kf.X[ok], kf.px[ok], kf.ids[ok], kf.w[ok]
+        self.kf_und_lens = g.undistort(self.kf_px)
         self.trk_px = np.ascontiguousarray(px[ok])
         self.kf_n0 = len(kf.X)
         self.T_world_kf = kf.T_world_kf.copy()

@@ -214,7 +214,8 @@ class VisualOdometry:
             self.store.add(self._stored)
         if self.ba is not None:
             f = self.front
-            self.ba.add_keyframe(f.T_world_kf, f.kf_ids, self.geo.undistort(f.kf_px, f.kf_rate, f.kf_X[:, 2]), f.kf_X)
+            und_kf = self.geo.at_stamp(f.kf_und_lens, f.kf_px, f.kf_rate, f.kf_X[:, 2])
+            self.ba.add_keyframe(f.T_world_kf, f.kf_ids, und_kf, f.kf_X)
 
     def _tracks(
         self,
@@ -241,7 +242,9 @@ class VisualOdometry:
         return Tracks(
             X_kf,
             front.kf_px[idx],
+            front.kf_und_lens[idx],
             px_cur,
+            und_lens,
             self.geo.at_stamp(und_lens, px_cur, rate, z_cur),
             T_guess_cur_kf,
             has_prior,

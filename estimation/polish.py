@@ -66,6 +66,7 @@ class PosePolisher:
         min_fraction: float,
         var_kf: F64 | None = None,
         rate: CameraRate | None = None,
+        und_lens: F64 | None = None,
     ) -> Motion | None:
         """PnP without RANSAC when the constant-velocity prediction already explains the tracks.
 
@@ -74,7 +75,8 @@ class PosePolisher:
         ``reproj_px`` of that pose, which then gets the depth polish (:meth:`refine`). Accepted
         when at least ``min_fraction`` of the tracks pass both the gate and the inlier test;
         else None, and the caller runs RANSAC. (Why not Gauss-Newton from the prediction:
-        docs/estimation-log.md.)
+        docs/estimation-log.md.) ``und_lens``: ``px_cur`` without the lens distortion, if known
+        (:meth:`refine`).
         """
         o = self.opts
         geo = self.geo
@@ -101,6 +103,7 @@ class PosePolisher:
             right_gray,
             var_kf=_subset(var_kf, mask),
             rate=rate,
+            und_lens=_subset(und_lens, mask),
         )
         self.remap(mask)
         return Motion(T, mask, True)
@@ -117,12 +120,14 @@ class PosePolisher:
         z_cur: F64 | None = None,
         var_kf: F64 | None = None,
         rate: CameraRate | None = None,
+        und_lens: F64 | None = None,
     ) -> Motion:
         """The same polish as PnP's for a motion found otherwise (5-point, Kabsch): reprojection
         of the keyframe points plus this frame's depth (``refine_with_depth``), inliers
         re-selected on the result; the depth measurements are kept for fusion. ``z_cur``: the
         depth at ``px_cur`` (at the frame's stamp) when the caller has looked it up already
-        (Kabsch); ``rate``: the camera's (a rolling shutter)."""
+        (Kabsch); ``rate``: the camera's (a rolling shutter); ``und_lens``: ``px_cur`` without the
+        lens distortion, if known (:meth:`refine`)."""
         o = self.opts
         if not (m.ok and o.refine_with_depth):
             return m
@@ -138,6 +143,7 @@ class PosePolisher:
             _subset(z_cur, mask),
             _subset(var_kf, mask),
             rate,
+            _subset(und_lens, mask),
         )
         refined = mask & (self.geo.reproj_err2(T, X_kf, und_cur) < o.reproj_px**2)
         if np.count_nonzero(refined) < o.min_inliers:
@@ -162,11 +168,14 @@ class PosePolisher:
         z: F64 | None = None,
         var_kf: F64 | None = None,
         rate: CameraRate | None = None,
+        und_lens: F64 | None = None,
     ) -> F64:
         """Polish a pose with the current frame's own depth (disparity residuals); ``z``: the
         depth at ``px`` (at the frame's stamp) if already looked up; ``var_kf``: the points'
         keyframe disparity variance (``Tracks.var_kf``; None: exact points); ``rate``: the camera's
-        (a rolling shutter: the depths are moved to the frame's stamp). Sets ``meas``."""
+        (a rolling shutter: the depths are moved to the frame's stamp); ``und_lens``: ``px``
+        without the lens distortion, if known (else the depth lookup undistorts them again). Sets
+        ``meas``."""
         geo = self.geo
         huber = self.opts.polish_huber_px
         if self.stereo:
@@ -197,7 +206,7 @@ class PosePolisher:
         elif depth_m is not None:
             fb = geo.intr.fx * geo.virtual_baseline_m
             if z is None:
-                X, ok = geo.depth_points(depth_m, px, rate)
+                X, ok = geo.depth_points(depth_m, px, rate, und_lens)
                 z = np.where(ok, X[:, 2], np.nan)
             d = fb / z
         else:

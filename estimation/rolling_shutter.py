@@ -52,6 +52,9 @@ class CameraRate:
 _FAR_M = 1e9
 """The depth given to a point whose depth is unknown: its velocity part vanishes."""
 
+_NO_DEPTH = np.empty(0)
+"""``_move_pixels``' depths when none are given (every point infinitely far)."""
+
 
 class RollingShutter:
     """Row timing of one rolling-shutter camera (pixels are undistorted ones of ``K``).
@@ -96,15 +99,14 @@ class RollingShutter:
         n = len(und_px)
         if n == 0:
             return np.asarray(und_px, dtype=np.float64)
-        if z_m is None:
-            z = np.full(n, np.inf)
-        else:
-            z_m = np.asarray(z_m, dtype=np.float64)
-            z = np.where(np.isfinite(z_m), z_m, _FAR_M)
+        # The rows' times (row_dt_s) and the depths' stand-ins are computed in the compiled loop.
         return _move_pixels(
             np.ascontiguousarray(und_px, dtype=np.float64),
-            self.row_dt_s(rows_px),
-            z,
+            np.ascontiguousarray(rows_px, dtype=np.float64),
+            0.5 * (self.height_px - 1),
+            self.readout_s / self.height_px,
+            _NO_DEPTH if z_m is None else np.ascontiguousarray(z_m, dtype=np.float64),
+            z_m is not None,
             rate.omega_rad_s,
             rate.velocity_m_s,
             self.fx,
@@ -117,8 +119,11 @@ class RollingShutter:
 @njit(cache=True)
 def _move_pixels(
     und: Any,
-    dt_s: Any,
+    rows: Any,
+    mid_row: float,
+    row_s: float,
     z: Any,
+    has_z: bool,
     w: Any,
     v: Any,
     fx: float,
@@ -126,15 +131,17 @@ def _move_pixels(
     cx: float,
     cy: float,
 ) -> F64:
-    """:meth:`RollingShutter.pixels` in one compiled loop, given each pixel's row time minus the
-    stamp's (``dt_s``; ``z`` inf: no velocity part)."""
+    """:meth:`RollingShutter.pixels` in one compiled loop: each pixel's row time minus the stamp's
+    is ``(rows[i] - mid_row) * row_s`` (:meth:`RollingShutter.row_dt_s`); its depth ``z[i]``
+    (``_FAR_M`` where not finite; without ``has_z`` infinite: no velocity part)."""
     n = und.shape[0]
     out = np.empty((n, 2))
     for i in range(n):
         x = (und[i, 0] - cx) / fx
         y = (und[i, 1] - cy) / fy
-        dt = dt_s[i]
-        inv_z = 1.0 / z[i]
+        dt = (rows[i] - mid_row) * row_s
+        zi = (z[i] if np.isfinite(z[i]) else _FAR_M) if has_z else np.inf
+        inv_z = 1.0 / zi
         # b = (x, y, 1) moved by dt * (w x b + v / z)
         bx = x + dt * (w[1] - w[2] * y + v[0] * inv_z)
         by = y + dt * (w[2] * x - w[0] + v[1] * inv_z)

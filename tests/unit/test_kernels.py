@@ -422,6 +422,9 @@ def test_warm_up_runs_each_method_through_its_estimation_path(method: str) -> No
         from estimation import five_point
 
         assert five_point._ransac.signatures  # its 5-point RANSAC ran once too
+        from estimation import _essential_kernel
+
+        assert _essential_kernel.essential_prior.signatures  # and the prediction's Sampson fit
 
 
 def _grid_select_numpy(

@@ -124,3 +124,33 @@ def test_restore_keeps_only_tracks_that_agree_on_one_pose() -> None:
     before = front.kf_ids.copy()
     assert not front.restore(kept, view(320), T_world_cam)
     np.testing.assert_array_equal(front.kf_ids, before)
+
+
+def test_front_end_keeps_the_keyframe_pixels_lens_undistorted() -> None:
+    """``kf_und_lens`` is ``CameraGeometry.undistort`` of ``kf_px`` (no rate), bit for bit, after a
+    new keyframe, ``keep`` and ``restore``: the estimators move it to the stamp instead of
+    undistorting the keyframe's pixels again every frame."""
+    intr = CameraIntrinsics(
+        fx=525.0, fy=525.0, cx=319.5, cy=239.5, width=640, height=480, dist=(0.2, -0.4, 0.001, -0.002, 0.1)
+    )
+    o = VoOptions().for_camera(intr.fx, intr.width)
+    geo = CameraGeometry(intr, None, intr, o, use_depth_images=True)
+    front = FrontEnd(geo, o, stereo=False)
+    big = _texture(1)
+    depth = np.full((intr.height, intr.width), DEPTH_M, np.float32)
+    front.make_keyframe(np.ascontiguousarray(big[20:-20, 20:-20]), None, depth, np.eye(4), None)
+    kept = front.snapshot()
+
+    def check() -> None:
+        assert len(front.kf_und_lens) == len(front.kf_px) > 50
+        np.testing.assert_array_equal(front.kf_und_lens, geo.undistort(front.kf_px))
+        assert np.abs(front.kf_und_lens - front.kf_px).max() > 1.0  # the lens moved them
+
+    check()
+    keep = np.arange(len(front.kf_px)) % 3 > 0
+    front.keep(keep, front.trk_px)
+    check()
+    front.make_keyframe(_texture(2)[20:-20, 20:-20], None, depth, _yaw(10.0), front.kf_X.copy())
+    check()
+    assert front.restore(kept, np.ascontiguousarray(big[20:-20, 20:-20]), np.eye(4))
+    check()

@@ -181,7 +181,9 @@ def test_a_measured_guess_asks_the_prior_check_for_its_own_share_of_inliers() ->
         return Tracks(
             np.ones((n, 3)),
             px,
+            px.astype(np.float64),
             px,
+            px.astype(np.float64),
             px.astype(np.float64),
             np.eye(4),
             True,
@@ -194,3 +196,46 @@ def test_a_measured_guess_asks_the_prior_check_for_its_own_share_of_inliers() ->
     assert tracks(None).prior_fraction(0.9) == 0.9  # a prediction: the options' share
     assert tracks(80).prior_fraction(0.9) == pytest.approx(0.72)  # 90 % of the 80 inliers
     assert tracks(100).prior_fraction(0.9) == 0.9  # never more than the options ask
+
+
+@pytest.mark.parametrize("readout_s", [0.0, READOUT_S])
+def test_depth_points_take_the_callers_lens_undistortion_bit_for_bit(readout_s: float) -> None:
+    """``CameraGeometry.depth_points`` given ``undistort(px)`` (what the odometry computed once for
+    both measurements) returns what it computes by itself, bit for bit."""
+    from estimation.camera_geometry import CameraGeometry
+
+    intr = CameraIntrinsics(FX, FX, CX, CY, W, H, dist=(0.25, -0.5, 0.001, -0.002, 0.2), readout_s=readout_s)
+    geo = CameraGeometry(intr, None, intr, VoOptions().for_camera(FX, W), use_depth_images=True)
+    rng = np.random.default_rng(9)
+    depth = rng.uniform(1.0, 3.0, (H // 40, W // 40)).astype(np.float32).repeat(40, axis=0).repeat(40, axis=1)
+    px = np.c_[rng.uniform(5, W - 5, 300), rng.uniform(5, H - 5, 300)].astype(np.float32)
+    und = geo.undistort(px)
+    assert np.abs(und - px).max() > 1.0  # the lens moves them
+    for rate in (None, CameraRate(np.array([0.9, -1.1, 0.4]), np.array([0.6, 0.3, -0.7]))):
+        X, ok = geo.depth_points(depth, px, rate)
+        X2, ok2 = geo.depth_points(depth, px, rate, und)
+        assert np.count_nonzero(ok) > 100
+        np.testing.assert_array_equal(ok2, ok)
+        np.testing.assert_array_equal(X2, X)
+
+
+def test_pixels_equal_the_numpy_formula_bit_for_bit() -> None:
+    """:meth:`RollingShutter.pixels` (one compiled loop, row times and missing depths inside it) is
+    the first-order model written in numpy, operation by operation."""
+    rng = np.random.default_rng(12)
+    shutter = RollingShutter(READOUT_S, H, FX, FX + 1.0, CX, CY)
+    rate = CameraRate(np.array([0.9, -1.1, 0.4]), np.array([0.6, 0.3, -0.7]))
+    und = np.c_[rng.uniform(0, W, 300), rng.uniform(0, H, 300)]
+    px = (und + rng.normal(scale=2.0, size=und.shape)).astype(np.float32)
+    z = rng.uniform(0.5, 4.0, 300)
+    z[::7], z[::11] = np.nan, np.inf
+    w, v = rate.omega_rad_s, rate.velocity_m_s
+    for z_m in (None, z, np.c_[z, z][:, 1]):  # none, contiguous, strided
+        dt = (px[:, 1].astype(np.float64) - 0.5 * (H - 1)) * (READOUT_S / H)
+        zz = np.full(300, np.inf) if z_m is None else np.where(np.isfinite(z_m), z_m, 1e9)
+        x, y, inv_z = (und[:, 0] - CX) / FX, (und[:, 1] - CY) / (FX + 1.0), 1.0 / zz
+        bx = x + dt * (w[1] - w[2] * y + v[0] * inv_z)
+        by = y + dt * (w[2] * x - w[0] + v[1] * inv_z)
+        bz = 1.0 + dt * (w[0] * y - w[1] * x + v[2] * inv_z)
+        ref = np.c_[FX * bx / bz + CX, (FX + 1.0) * by / bz + CY]
+        np.testing.assert_array_equal(shutter.pixels(und, px[:, 1], rate, z_m), ref)
