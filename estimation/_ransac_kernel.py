@@ -28,7 +28,7 @@ def rng_next(state: Any) -> tuple[Any, int]:
 
 
 @njit(cache=True)
-def draw_sample(state: Any, n: int, idx: Any) -> Any:
+def draw_sample(state: np.uint64, n: int, idx: Any) -> np.uint64:
     """Fill ``idx`` with distinct indices below ``n``, drawn one after the other (a repeat is drawn
     again), as OpenCV's RANSAC draws a sample; returns the generator's new state."""
     for i in range(idx.shape[0]):
