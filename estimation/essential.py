@@ -21,7 +21,7 @@ import numpy.typing as npt
 
 from estimation import _essential_kernel, _kernels
 from estimation.five_point import find_essential
-from estimation.motion import Motion, failed_motion, make_T, median
+from estimation.motion import Motion, failed_motion, make_T
 from flightkit.errors import EstimationError
 
 __all__ = ["essential_from_prior", "essential_metric", "pose_from_essential", "refine_essential", "sampson_px"]
@@ -89,7 +89,7 @@ def essential_metric(
     if np.count_nonzero(mask) < min_inliers:
         return failed_motion(n)
     t = np.asarray(t, dtype=np.float64).ravel()
-    s = _metric_scale(np.asarray(R, dtype=np.float64), t, p1, X, mask, Km)
+    s = _metric_scale_rays(np.asarray(R, dtype=np.float64), t, _normalised(p1, Km), X, mask)
     if s is None:
         return failed_motion(n)
     # A negative s means depth disagrees with recoverPose's sign choice (tiny baselines);
@@ -97,36 +97,21 @@ def essential_metric(
     return Motion(make_T(R, s * t), mask, True)
 
 
-def _metric_scale(R: F64, t: F64, p1: F64, X: F64, mask: Mask, Km: F64) -> float | None:
-    """The scale s of a unit translation ``t`` that the reference depths support: per inlier
-    with a valid 3D point, ``x cross (R X + s t) = 0`` is linear in s; the median, then a
-    ``|x cross t|^2``-weighted mean over the points near it. None when too few points tell."""
-    Kinv = np.linalg.inv(Km)
-    valid = mask & np.isfinite(X).all(axis=1) & (X[:, 2] > 0)
-    if np.count_nonzero(valid) < 3:
-        return None
-    x = np.c_[p1[valid], np.ones(np.count_nonzero(valid))] @ Kinv.T
-    a = _cross(x, X[valid] @ R.T)
-    b = _cross(x, t[None, :])
-    bb = np.einsum("ni,ni->n", b, b)
-    good = bb > 1e-12
-    if np.count_nonzero(good) < 3:
-        return None
-    s_all = -np.einsum("ni,ni->n", a[good], b[good]) / bb[good]
-    # Median, then a weighted mean over the points near it (|b|^2 weights well-conditioned points).
-    s_med = median(s_all)
-    mad = median(np.abs(s_all - s_med)) + 1e-9
-    near = np.abs(s_all - s_med) < 3.0 * 1.4826 * mad
-    w = bb[good][near]
-    s = float(np.sum(s_all[near] * w) / np.sum(w)) if w.sum() > 0 else s_med
-    return s if math.isfinite(s) else None
+def _normalised(px: F64, Km: F64) -> F64:
+    """(N, 2) pixels as normalised image coordinates ``((u - cx) / fx, (v - cy) / fy)``."""
+    x = np.empty((len(px), 2))
+    x[:, 0] = (px[:, 0] - Km[0, 2]) / Km[0, 0]
+    x[:, 1] = (px[:, 1] - Km[1, 2]) / Km[1, 1]
+    return x
 
 
 def _metric_scale_rays(R: F64, t: F64, x_cur: F64, X: F64, mask: Mask) -> float | None:
-    """:func:`_metric_scale` of the matches ``mask`` whose points ``X`` are valid (finite, z > 0),
-    from their normalised current rays ``x_cur`` ((N, 2) or (N, 3): ``u, v``): the same
-    estimator in one compiled call (``estimation._essential_kernel.scale_terms``, equal bit for
-    bit to the numpy expressions it replaced) and the weighted mean."""
+    """The scale s of a unit translation ``t`` that the reference depths support, from the matches
+    ``mask`` whose points ``X`` are valid (finite, z > 0) and their normalised current rays ``x_cur``
+    ((N, 2) or (N, 3): ``u, v``): per match ``x cross (R X + s t) = 0`` is linear in s; the median,
+    then a ``|x cross t|^2``-weighted mean over the solutions near it. The per-match part is one
+    compiled call (``estimation._essential_kernel.scale_terms``, equal bit for bit to the numpy
+    expressions it replaced). None when too few matches tell."""
     ok, s_med, s_near, w = _essential_kernel.scale_terms(
         np.ascontiguousarray(R, dtype=np.float64),
         np.ascontiguousarray(t, dtype=np.float64),
@@ -167,7 +152,7 @@ def pose_from_essential(
     """The metric motion of an essential matrix that the reference depths support.
 
     ``E`` factors into two rotations and a unit translation of either sign. With depth the
-    sign comes with the metric scale (:func:`_metric_scale` solves it per rotation, a
+    sign comes with the metric scale (:func:`_metric_scale_rays` solves it per rotation, a
     negative scale flips the translation), and the rotation is the one whose motion
     reprojects most reference points (of ``inliers``) within ``agree_px``: no
     triangulation, so no distance limit as in ``recoverPose`` (50 baselines). The returned
@@ -180,9 +165,7 @@ def pose_from_essential(
     t: F64 = np.asarray(t_col, dtype=np.float64).ravel()
     best: Motion | None = None
     ok_X = np.isfinite(X).all(axis=1) & (X[:, 2] > 0)
-    x_cur = np.empty((len(p1), 2))
-    x_cur[:, 0] = (p1[:, 0] - Km[0, 2]) / Km[0, 0]
-    x_cur[:, 1] = (p1[:, 1] - Km[1, 2]) / Km[1, 1]
+    x_cur = _normalised(p1, Km)
     inl = np.ascontiguousarray(inliers, dtype=np.bool_)
     for R_cand in (R1, R2):
         R = np.asarray(R_cand, dtype=np.float64)
@@ -214,15 +197,6 @@ def _rays(R: F64, t: F64, x_ref: F64, x_cur: F64) -> tuple[F64, F64, F64, F64]:
         np.ascontiguousarray(x_ref, dtype=np.float64),
         np.ascontiguousarray(x_cur, dtype=np.float64),
     )
-
-
-def _cross(a: F64, b: F64) -> F64:
-    """Row-wise cross product of (N, 3) arrays (``np.cross`` costs ~0.1 ms in its axis handling)."""
-    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
-    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
-    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
-    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
-    return out
 
 
 def refine_essential(
