@@ -211,11 +211,17 @@ def test_short_mocap_dropout_holds_then_resumes(stall_then_dropout: StallThenDro
     all_kinds = [f.kind.value for f in s.faults]
     assert "mocap_stale" in all_kinds and "mocap_lost" not in all_kinds
     assert s.laps_completed == 1
-    # the dropout's hold: the first stale fault after the injection, 0.2 s (the limit) into it
+    # the dropout's hold: the first stale fault after the injection, once the last pose from before
+    # it is 0.2 s (the limit) old. On a loaded host that pose may already be up to a stall old
+    # (0.15 s) when the dropout starts, so the fault is timed from the pose, not from the injection.
     dropped_at_s = run.then_injected_at_s
     stale = next((f for f in s.faults if f.kind.value == "mocap_stale" and f.time_s >= dropped_at_s), None)
-    assert stale is not None and 0.15 < stale.time_s - dropped_at_s < 0.4, s.format_table()
+    assert stale is not None and stale.time_s - dropped_at_s < 0.4, s.format_table()
     log = read_flight_log(stall_then_dropout.log_path)
+    seen = (log["t_s"] <= stale.time_s) & (log["mocap_age_s"] >= 0.0)
+    last_pose_s = float(np.max(log["t_s"][seen] - log["mocap_age_s"][seen]))
+    assert last_pose_s <= dropped_at_s + 0.01  # no pose reached the loop from inside the dropout
+    assert stale.time_s - last_pose_s >= 0.2 - 1e-6, (stale, last_pose_s, dropped_at_s)
     pat = log["phase"] == "pattern"
     held = pat & (log["action"] == "HOLD")
     assert np.all(log["sp_vx_m_s"][held] == 0.0) and np.all(log["sp_vy_m_s"][held] == 0.0)  # zero velocity
