@@ -43,6 +43,13 @@ MAVSDK_SPEED = 3.0  # the MAVSDK backend times its stream on the clock but MAVSD
 RMS_BOUND_M = 0.03
 MAX_BOUND_M = 0.12
 
+# PX4's goto lags its transit's 0.5 m/s^2 speed ramps: the velocity law (reference velocity plus a
+# 1/s position gain) leaves the error of the autopilot's velocity response, which peaks at ~50 mm
+# as the speed ramps up and ~35 mm as it ramps down. Measured (2026-11-27): goto RMS 26-29 mm on
+# a quiet machine, 30.3 mm with the process throttled to half a core (docs/testing.md); so the goto
+# has its own bound, with margin, and take-off and landing (10 and 22 mm) keep the pattern's.
+PX4_GOTO_RMS_BOUND_M = 0.04
+
 # The simulated ArduCopter lags a velocity stream as the firmware does (its position controller's
 # acceleration and jerk limits, docs/sim.md). Real ArduCopter 4.7 SITL flying the example plans
 # (issue 19): take-off RMS 60-70 mm / max 109-131 mm, goto 66-69 / 111-125 mm, patterns RMS
@@ -200,10 +207,12 @@ def test_circle_tracks_within_bounds_and_looks_inward(autopilot: str, tmp_path: 
         # one lap of the real plan: every phase against the real firmware's figures
         assert_like_arducopter(summary, with_pattern=True)
     else:
-        # Every phase tracks within the pattern's bounds, the landing included (against the
-        # floor-clamped reference): its descent keeps headroom below the vertical speed limit.
+        # Take-off and landing track within the pattern's bounds, the landing against the
+        # floor-clamped reference (its descent keeps headroom below the vertical speed limit); the
+        # goto within its own (PX4_GOTO_RMS_BOUND_M).
         for phase in ("takeoff", "goto", "land"):
-            assert summary.phase(phase).rms_error_m < RMS_BOUND_M, summary.format_table()
+            rms_bound_m = PX4_GOTO_RMS_BOUND_M if phase == "goto" else RMS_BOUND_M
+            assert summary.phase(phase).rms_error_m < rms_bound_m, summary.format_table()
             assert summary.phase(phase).max_error_m < MAX_BOUND_M, summary.format_table()
 
     # the flown path, from the log: a 1 m circle at 1.5 m, all the way round, facing the centre
