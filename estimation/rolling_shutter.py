@@ -69,10 +69,13 @@ class RollingShutter:
         self.readout_s = float(readout_s)
         self.height_px = int(height_px)
         self.fx, self.fy, self.cx, self.cy = fx, fy, cx, cy
+        # A row's exposure time minus the stamp's is (row - mid_row_px) * row_s.
+        self.mid_row_px = 0.5 * (self.height_px - 1)
+        self.row_s = self.readout_s / self.height_px
 
     def row_dt_s(self, rows_px: Rows) -> F64:
         """Each row's exposure time minus the stamp's, s."""
-        return (np.asarray(rows_px, dtype=np.float64) - 0.5 * (self.height_px - 1)) * (self.readout_s / self.height_px)
+        return (np.asarray(rows_px, dtype=np.float64) - self.mid_row_px) * self.row_s
 
     def max_shift_px(self, rate: CameraRate) -> float:
         """About the largest pixel shift the rate's rotation makes between the stamp and the
@@ -103,8 +106,8 @@ class RollingShutter:
         return _move_pixels(
             np.ascontiguousarray(und_px, dtype=np.float64),
             np.ascontiguousarray(rows_px, dtype=np.float64),
-            0.5 * (self.height_px - 1),
-            self.readout_s / self.height_px,
+            self.mid_row_px,
+            self.row_s,
             _NO_DEPTH if z_m is None else np.ascontiguousarray(z_m, dtype=np.float64),
             z_m is not None,
             rate.omega_rad_s,
