@@ -33,8 +33,13 @@ before timing at each size: ``bench/_synthetic.py``).
 
 ``--features 450,600`` adds ``stereo#N`` rows with N corners per keyframe.
 
+``--replay forward,reverse,every2`` runs every sequence also played backwards (rows mirrored
+for a rolling-shutter camera) and at half the frame rate (``flightkit.datasets.replay``): the
+same real data with motion nothing was tuned on.
+
 Run: .venv/bin/python bench/vo.py [--only kitti06,tum_rpy] [--sizes native,640x480] [--rounds 1]
-     [--no-sift] [--ba 4] [--features 450,600] [--synthetic] [--json out.json] [--cpu N]
+     [--no-sift] [--ba 4] [--features 450,600] [--replay forward,reverse,every2] [--synthetic]
+     [--json out.json] [--cpu N]
 """
 
 from __future__ import annotations
@@ -75,6 +80,7 @@ from estimation.pipeline import (  # noqa: E402
     warm_up,
 )
 from flightkit.datasets.registry import open_sequence  # noqa: E402
+from flightkit.datasets.replay import reversed_sequence, strided_sequence  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
@@ -125,6 +131,13 @@ VARIANTS: dict[str, VoOptions] = {
     "row": VoOptions(stereo_matcher="row"),  # stereo: new points' disparity by the row search alone
 }
 """Row-name suffixes (``method@variant``) and their options."""
+
+REPLAYS: dict[str, Any] = {
+    "forward": lambda seq: seq,
+    "reverse": reversed_sequence,
+    "every2": lambda seq: strided_sequence(seq, 2),
+}
+"""``--replay`` names and how each replays a sequence."""
 
 
 def metrics(res: VoResult, gt: Any) -> dict[str, float]:
@@ -200,6 +213,9 @@ def main() -> int:
     ap.add_argument(
         "--features", default="", help="comma-separated corner budgets: also run the stereo rows with each"
     )
+    ap.add_argument(
+        "--replay", default="forward", help=f"comma-separated replays of each sequence: {', '.join(REPLAYS)}"
+    )
     ap.add_argument("--only", help="comma-separated sequence keys")
     ap.add_argument("--synthetic", action="store_true", help="add the synthetic lab-pattern sequences")
     ap.add_argument("--json", type=Path)
@@ -209,12 +225,16 @@ def main() -> int:
     cv2.setNumThreads(1)
     pin_one_cpu(args.cpu)
     keys = args.only.split(",") if args.only else list(SEQUENCES) + (list(SYNTHETIC) if args.synthetic else [])
+    replays = args.replay.split(",")
+    unknown = [r for r in replays if r not in REPLAYS]
+    if unknown:
+        ap.error(f"unknown replay {', '.join(unknown)}; use {', '.join(REPLAYS)}")
     rows: list[dict[str, object]] = []
     for m in Method:  # untimed: load the compiled kernels (estimation/_kernels.py)
         warm_up(m)
     print(f"data: {DATA}; OpenCV {cv2.__version__}, threads {cv2.getNumThreads()}, one CPU")
     for key in keys:
-        for size_s in args.sizes.split(","):
+        for size_s, replay in ((s, r) for s in args.sizes.split(",") for r in replays):
             if key in SYNTHETIC:
                 size = (320, 240) if size_s == "native" else tuple(int(v) for v in size_s.split("x"))
                 seq: Any = prerendered(SYNTHETIC[key], size)
@@ -225,6 +245,9 @@ def main() -> int:
                 plain = [base]
                 native = (seq.intrinsics.width, seq.intrinsics.height)
                 size = native if size_s == "native" else tuple(int(v) for v in size_s.split("x"))
+            if replay != "forward" and len(seq) < 4:
+                continue  # a frame pair: nothing to replay
+            seq = REPLAYS[replay](seq)
             label = f"{size[0]}x{size[1]}"
             print(f"\n== {key}: {seq.name}, {len(seq)} frames at {label}")
             print(HEADER)
@@ -257,6 +280,7 @@ def main() -> int:
                     {
                         "sequence": key,
                         "size": label,
+                        "replay": replay,
                         "method": name,
                         "fps_cpu": fps,
                         "fps_cpu_best": best,
