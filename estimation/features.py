@@ -31,7 +31,7 @@ import numpy.typing as npt
 from estimation._grid_kernel import grid_select, min_eigenvalue_at
 from flightkit.errors import EstimationError
 
-__all__ = ["DescriptorExtractor", "Features", "GridDetector", "as_gray"]
+__all__ = ["DescriptorExtractor", "Features", "GridDetector", "as_gray", "occupied_cells"]
 
 logger = logging.getLogger(__name__)
 
@@ -143,6 +143,15 @@ class GridDetector:
         # Inside the border, in free cells, the strongest few of each cell (one compiled loop).
         chosen = grid_select(pts, resp, occupied, cs, ncx, self.border_px, w, h, budget)
         return np.ascontiguousarray(pts[chosen])
+
+
+def occupied_cells(px: Points2, cell_px: float) -> int:
+    """How many square cells of ``cell_px`` (a grid from the image origin) hold at least one of
+    the pixels ``px`` (N, 2)."""
+    if len(px) == 0:
+        return 0
+    cells = np.floor(np.asarray(px, np.float64) / cell_px).astype(np.int64)
+    return len(np.unique(cells[:, 1] * (1 << 20) + cells[:, 0]))
 
 
 @dataclass(frozen=True, slots=True, eq=False)

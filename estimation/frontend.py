@@ -16,7 +16,7 @@ import numpy as np
 import numpy.typing as npt
 
 from estimation.camera_geometry import CameraGeometry, depth_weight
-from estimation.features import DescriptorExtractor, Features, GridDetector
+from estimation.features import DescriptorExtractor, Features, GridDetector, occupied_cells
 from estimation.flow import track_klt
 from estimation.matching import match_descriptors, match_stereo_rows
 from estimation.motion import Motion, invert
@@ -106,6 +106,14 @@ class FrontEnd:
         h, w = cur.shape
         ok &= (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
         return px, ok
+
+    def covered_fraction(self) -> float:
+        """The image area the tracked points cover now over the area they covered in the keyframe,
+        counted on cells of 2x2 detection cells (about four corners each): below 1 when the scene
+        recedes and its points bunch together (the camera moving back from it)."""
+        cell = 2 * self.grid.cell_px
+        then = occupied_cells(self.kf_px, cell)
+        return occupied_cells(self.trk_px, cell) / then if then else 1.0
 
     def keep(self, keep: Bool, px: F32) -> None:
         """Keep only the tracks ``keep`` (their current pixels ``px``)."""

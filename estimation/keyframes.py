@@ -10,6 +10,9 @@ A new keyframe is taken when any of these holds:
   (enough baseline; the essential matrix needs it, PnP loses points near the border);
 * fewer than ``min_tracked_fraction`` of the keyframe's points are still tracked as inliers,
   or fewer than ``min_tracked`` in absolute terms;
+* the tracked points cover less than ``min_tracked_fraction`` of the image area they covered in
+  the keyframe (the scene receding: its points bunch together and leave the rest of the image
+  without corners, while every one of them is still tracked);
 * the camera moved more than ``max_baseline_ratio`` times the median scene depth (or more
   than ``max_translation_m``), or turned more than ``max_rotation_rad``;
 * ``max_interval`` frames have passed (bounds the age of the map).
@@ -55,6 +58,7 @@ class KeyframePolicy:
         T_cur_kf: npt.NDArray[np.float64],
         frames_since_keyframe: int,
         scene_depth_m: float = float("inf"),
+        covered_fraction: float = 1.0,
     ) -> KeyframeDecision:
         """Apply the policy.
 
@@ -65,6 +69,8 @@ class KeyframePolicy:
             T_cur_kf: motion from the keyframe to the current camera (4x4).
             frames_since_keyframe: frames processed since the keyframe.
             scene_depth_m: median depth of the keyframe's points (for the baseline ratio).
+            covered_fraction: the image area the tracked points cover over the area they
+                covered in the keyframe (``FrontEnd.covered_fraction``).
         """
         par = (
             median(np.asarray(parallax_px).reshape(-1))
@@ -77,6 +83,8 @@ class KeyframePolicy:
             return KeyframeDecision(True, f"{n_tracked} tracked < {self.min_tracked}")
         if n_keyframe_points and n_tracked < self.min_tracked_fraction * n_keyframe_points:
             return KeyframeDecision(True, f"{n_tracked}/{n_keyframe_points} tracked")
+        if covered_fraction < self.min_tracked_fraction:
+            return KeyframeDecision(True, f"{covered_fraction:.2f} of the area covered")
         dist = float(np.linalg.norm(T_cur_kf[:3, 3]))
         if dist > self.max_translation_m or dist > self.max_baseline_ratio * scene_depth_m:
             return KeyframeDecision(True, f"moved {dist:.2f} m")

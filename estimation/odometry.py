@@ -425,7 +425,9 @@ class VisualOdometry:
         if self.method is Method.STEREO and o.far_points != "drop":
             z_kf = np.minimum(z_kf, self.geo.near_depth_m())  # the baseline rule: the depth of the near points
         depth = median(z_kf) if len(z_kf) else float("inf")
-        decision = o.keyframes.decide(parallax, len(front.trk_px), front.kf_n0, T_cur_kf, self.kf_since, depth)
+        decision = o.keyframes.decide(
+            parallax, len(front.trk_px), front.kf_n0, T_cur_kf, self.kf_since, depth, front.covered_fraction()
+        )
         is_kf = decision.new_keyframe or fallback
         if is_kf and not fallback and self._revisit(gray, rate):
             logger.debug("frame %d: back to a kept keyframe (%s)", self.index, decision.reason)

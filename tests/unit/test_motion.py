@@ -354,6 +354,27 @@ def test_keyframe_policy_reasons() -> None:
     turned = make_T(Rotation.from_euler("y", 15, degrees=True).as_matrix(), np.zeros(3))
     assert "turned" in pol.decide(np.full(100, 2.0), 100, 120, turned, 3).reason
     assert "frames" in pol.decide(np.full(100, 2.0), 100, 120, still, 10).reason
+    assert "area covered" in pol.decide(np.full(100, 2.0), 100, 120, still, 3, covered_fraction=0.45).reason
+    assert not pol.decide(np.full(100, 2.0), 100, 120, still, 3, covered_fraction=0.55).new_keyframe
+
+
+def test_covered_area_shrinks_as_the_scene_recedes() -> None:
+    """``occupied_cells`` on corners spread over a 640x480 image, and on the same corners seen
+    from farther back (scaled towards the centre): 0.75x of the distances covers about 0.75^2 of
+    the area (plus the cells the edges cut), below the 0.7 at which the keyframe policy starts a
+    new keyframe."""
+    from estimation.features import occupied_cells
+
+    rng = np.random.default_rng(0)
+    px = rng.uniform([0.0, 0.0], [640.0, 480.0], (300, 2)).astype(np.float32)
+    assert occupied_cells(px[:1], 64.0) == 1 and occupied_cells(px[:0], 64.0) == 0
+    assert occupied_cells(np.array([[1.0, 1.0], [63.0, 63.0], [64.0, 1.0]], np.float32), 64.0) == 2
+    full = occupied_cells(px, 64.0)
+    assert full >= 0.95 * 80  # 10 x 7.5 cells, nearly all hold a corner
+    centre = np.array([320.0, 240.0], np.float32)
+    for scale, lo, hi in ((0.95, 0.85, 1.0), (0.75, 0.5, 0.7)):
+        ratio = occupied_cells(centre + scale * (px - centre), 64.0) / full
+        assert lo < ratio < hi, (scale, ratio)
 
 
 def test_vo_options_reject_bad_values() -> None:
