@@ -35,8 +35,11 @@ from flightkit.frames import Transform
 
 __all__ = ["ReplayedSequence", "mirror_rows_intrinsics", "reversed_sequence", "strided_sequence"]
 
-_S4 = np.diag([1.0, -1.0, 1.0, 1.0])
-"""The mirror ``y -> -y`` of a camera or world frame, homogeneous."""
+_MIRROR_XYZ = np.array([1.0, -1.0, 1.0])
+"""The mirror ``y -> -y`` of a camera or world frame (``S``'s diagonal)."""
+
+_S4 = np.diag([*_MIRROR_XYZ, 1.0])
+"""``S`` as a homogeneous transform."""
 
 _QUAT_WXYZ_MIRROR = np.array([1.0, -1.0, 1.0, -1.0])
 """``S R S`` of a rotation with quaternion (w, x, y, z) has the quaternion (w, -x, y, -z)."""
@@ -112,10 +115,9 @@ class ReplayedSequence:
         return next(iter(self._source.frames(index, index + 1)))
 
     def frames(self, start: int = 0, stop: int | None = None, step: int = 1) -> Iterator[Frame]:
-        positions = range(len(self))[start:stop:step]
-        for pos in positions:
+        flip = _flip_rows if self._mirror else _same
+        for pos in range(len(self))[start:stop:step]:
             f = self._source_frame(self._indices[pos])
-            flip = _flip_rows if self._mirror else _same
             yield replace(
                 f,
                 index=pos,
@@ -136,7 +138,7 @@ class ReplayedSequence:
         positions = gt.positions[order]
         quats = gt.quats_wxyz[order]
         if self._mirror:
-            positions = positions * _S4[0:3, 0:3].diagonal()
+            positions = positions * _MIRROR_XYZ
             quats = quats * _QUAT_WXYZ_MIRROR
         return Trajectory(self._map_stamps(gt.stamps_ns)[order], positions, quats, name=gt.name)
 
