@@ -33,12 +33,13 @@ before timing at each size: ``bench/_synthetic.py``).
 
 ``--features 450,600`` adds ``stereo#N`` rows with N corners per keyframe.
 
-``--replay forward,reverse,every2`` runs every sequence also played backwards (rows mirrored
-for a rolling-shutter camera) and at half the frame rate (``flightkit.datasets.replay``): the
-same real data with motion nothing was tuned on.
+``--replay forward,reverse,every2,exposure`` runs every sequence also played backwards (rows
+mirrored for a rolling-shutter camera), at half the frame rate, and with the exposure changing
+from frame to frame (gains log-normal, 15 % rms, seed 0) (``flightkit.datasets.replay``): the
+same real data with motion and lighting nothing was tuned on.
 
 Run: .venv/bin/python bench/vo.py [--only kitti06,tum_rpy] [--sizes native,640x480] [--rounds 1]
-     [--no-sift] [--ba 4] [--features 450,600] [--replay forward,reverse,every2] [--synthetic]
+     [--no-sift] [--ba 4] [--features 450,600] [--replay forward,reverse,every2,exposure] [--synthetic]
      [--json out.json] [--cpu N]
 """
 
@@ -80,7 +81,7 @@ from estimation.pipeline import (  # noqa: E402
     warm_up,
 )
 from flightkit.datasets.registry import open_sequence  # noqa: E402
-from flightkit.datasets.replay import reversed_sequence, strided_sequence  # noqa: E402
+from flightkit.datasets.replay import exposure_sequence, reversed_sequence, strided_sequence  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
@@ -90,6 +91,7 @@ RGBD = [
     "rgbd-kabsch",
     "rgbd-kabsch@weigh",
     "rgbd-kabsch@revisit",
+    "rgbd-kabsch@fixedexp",
     "flow",
     "rgbd-pnp@global",
     "rgbd-essential@global",
@@ -104,6 +106,7 @@ STEREO = [
     "stereo@drop",
     "stereo@far",
     "stereo@offset",
+    "stereo@fixedexp",
 ]
 SEQUENCES: dict[str, tuple[str, list[str], str]] = {
     # key: (folder, flightkit methods, plain baseline)
@@ -123,6 +126,7 @@ VARIANTS: dict[str, VoOptions] = {
     "offset": VoOptions(far_points="drop"),  # stereo: far points dropped, the disparity offset estimated online
     "far": VoOptions(stereo_offset=False),  # stereo: far points weighted, no disparity offset
     "global": VoOptions(readout_s=0.0),  # the rows read as exposed at once (before the fourteenth pass)
+    "fixedexp": VoOptions(exposure_compensation=False),  # exposure changes not undone (before the eighteenth pass)
     "revisit": VoOptions(revisit_keyframes=30),  # RGB-D returning to kept keyframes the camera sees again
     "weigh": VoOptions(point_uncertainty=True),  # RGB-D: the polish weighs each point by its keyframe depth's noise
     "exact": VoOptions(point_uncertainty=False),  # stereo: the polish takes the keyframe points as exact
@@ -136,6 +140,7 @@ REPLAYS: dict[str, Any] = {
     "forward": lambda seq: seq,
     "reverse": reversed_sequence,
     "every2": lambda seq: strided_sequence(seq, 2),
+    "exposure": lambda seq: exposure_sequence(seq, np.exp(np.random.default_rng(0).normal(0.0, 0.15, len(seq)))),
 }
 """``--replay`` names and how each replays a sequence."""
 

@@ -16,6 +16,7 @@ import numpy as np
 import numpy.typing as npt
 
 from estimation.camera_geometry import CameraGeometry, depth_weight
+from estimation.exposure import exposure_gain, match_exposure
 from estimation.features import DescriptorExtractor, Features, GridDetector, occupied_cells
 from estimation.flow import track_klt
 from estimation.matching import match_descriptors, match_stereo_rows
@@ -83,6 +84,9 @@ class FrontEnd:
     def track(self, prev: U8, cur: U8, guess: F32, trust_px: F64 | float) -> tuple[F32, Bool]:
         """Track the keyframe's points from the previous image into ``cur`` (LK, forward-backward
         checked, started at ``guess``); tracks that leave the image are not ok."""
+        if self.opts.exposure_compensation:
+            gain = exposure_gain(prev, cur, self.trk_px, guess, self.grid.cell_px)
+            prev, cur = match_exposure(prev, cur, gain)
         return self._lk(prev, cur, self.trk_px, guess, self.geo.klt_back_levels, trust_px)
 
     def _lk(

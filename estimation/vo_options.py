@@ -256,6 +256,8 @@ class VoOptions:
         ba_window: local bundle adjustment over this many keyframes (0: off).
         revisit_keyframes: keep this many past keyframes and return to one the camera sees again
             instead of making a new keyframe (``estimation.revisit``; 0: off).
+        exposure_compensation: before tracking, undo a significant exposure (gain) change between
+            the previous image and the current one (``estimation.exposure``; auto-exposure cameras).
         readout_s: rolling-shutter readout (first row to last, s) whose row timing is undone
             (``estimation.rolling_shutter``); None: the camera's ``CameraIntrinsics.readout_s``.
         seed: RANSAC random seed (repeatable runs).
@@ -299,6 +301,7 @@ class VoOptions:
     keyframes: KeyframePolicy = field(default_factory=KeyframePolicy)
     ba_window: int = 0
     revisit_keyframes: int = 0
+    exposure_compensation: bool = True
     readout_s: float | None = None
     seed: int = 0
 

@@ -13,6 +13,8 @@ motion it was not tuned on (``bench/vo.py --replay``):
   ``T' = S T S`` with ``S = diag(1, -1, 1)``, still a proper rotation).
 * :func:`strided_sequence` keeps every ``step``-th frame from ``offset`` on: the same camera at
   a lower frame rate, so each step is ``step`` times larger.
+* :func:`exposure_sequence` multiplies each frame's images by a gain, as a camera's automatic
+  exposure does from frame to frame (the depth images are left as they are).
 
 The result is a :class:`~flightkit.datasets.base.Sequence` like any other: ``run_vo``,
 ``run_plain`` and the evaluation take it as they take the original.
@@ -33,7 +35,13 @@ from flightkit.datasets.trajectory import Trajectory
 from flightkit.errors import DatasetError
 from flightkit.frames import Transform
 
-__all__ = ["ReplayedSequence", "mirror_rows_intrinsics", "reversed_sequence", "strided_sequence"]
+__all__ = [
+    "ReplayedSequence",
+    "exposure_sequence",
+    "mirror_rows_intrinsics",
+    "reversed_sequence",
+    "strided_sequence",
+]
 
 _MIRROR_XYZ = np.array([1.0, -1.0, 1.0])
 """The mirror ``y -> -y`` of a camera or world frame (``S``'s diagonal)."""
@@ -63,11 +71,27 @@ class ReplayedSequence:
         indices: the source's frame indices, in replay order (increasing or decreasing).
         mirror_rows: flip every image upside down and mirror the poses with it.
         name: the replay's name (tables and logs).
+        gains: one factor per replayed frame for its 8-bit images (None: as recorded).
     """
 
-    def __init__(self, source: Sequence, indices: list[int], mirror_rows: bool, name: str) -> None:
+    def __init__(
+        self,
+        source: Sequence,
+        indices: list[int],
+        mirror_rows: bool,
+        name: str,
+        gains: npt.ArrayLike | None = None,
+    ) -> None:
         if len(indices) < 2:
             raise DatasetError(f"a replay of {source.name} needs at least 2 frames, got {len(indices)}")
+        self._gains = None if gains is None else np.asarray(gains, dtype=np.float64).reshape(-1)
+        if self._gains is not None and (
+            len(self._gains) != len(indices) or not np.all(np.isfinite(self._gains) & (self._gains > 0))
+        ):
+            raise DatasetError(
+                f"exposure gains for {source.name}: {len(self._gains)} given for {len(indices)} frames; "
+                "give one positive, finite gain per frame"
+            )
         self._source = source
         self._indices = list(indices)
         self._mirror = bool(mirror_rows)
@@ -118,13 +142,14 @@ class ReplayedSequence:
         flip = _flip_rows if self._mirror else _same
         for pos in range(len(self))[start:stop:step]:
             f = self._source_frame(self._indices[pos])
+            gain = 1.0 if self._gains is None else float(self._gains[pos])
             yield replace(
                 f,
                 index=pos,
                 stamp_ns=int(self._stamps[pos]),
-                gray=flip(f.gray),
-                color_bgr=flip(f.color_bgr),
-                right_gray=flip(f.right_gray),
+                gray=_scaled(flip(f.gray), gain),
+                color_bgr=_scaled(flip(f.color_bgr), gain),
+                right_gray=_scaled(flip(f.right_gray), gain),
                 depth_raw=flip(f.depth_raw),
                 T_world_camera=self._map_pose(f.T_world_camera),
             )
@@ -151,6 +176,13 @@ def _same(image: Any) -> Any:
     return image
 
 
+def _scaled(image: Any, gain: float) -> Any:
+    """An 8-bit image times ``gain``, rounded and saturated as a sensor's would be."""
+    if image is None or gain == 1.0:
+        return image
+    return np.clip(np.rint(image.astype(np.float32) * gain), 0, 255).astype(np.uint8)
+
+
 def reversed_sequence(source: Sequence, mirror_rows: bool | None = None) -> ReplayedSequence:
     """``source`` played from its last frame to its first (see the module docstring).
 
@@ -171,3 +203,12 @@ def strided_sequence(source: Sequence, step: int, offset: int = 0) -> ReplayedSe
     return ReplayedSequence(
         source, list(range(offset, len(source), step)), False, f"{source.name} every {step} from {offset}"
     )
+
+
+def exposure_sequence(source: Sequence, gains: npt.ArrayLike) -> ReplayedSequence:
+    """``source`` with frame ``i``'s images (gray, colour, right) multiplied by ``gains[i]``, rounded
+    and saturated at 255: a camera's exposure changing from frame to frame. Depth is unchanged."""
+    g = np.asarray(gains, dtype=np.float64).reshape(-1)
+    spread = float(np.std(np.log(g))) if len(g) and np.all(g > 0) else float("nan")
+    name = f"{source.name} with exposure changes ({100 * spread:.0f} % rms)"
+    return ReplayedSequence(source, list(range(len(source))), False, name, gains=g)

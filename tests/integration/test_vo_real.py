@@ -30,7 +30,7 @@ from estimation.pipeline import (
     run_vo,
 )
 from flightkit.datasets.registry import open_sequence
-from flightkit.datasets.replay import reversed_sequence
+from flightkit.datasets.replay import exposure_sequence, reversed_sequence
 from flightkit.datasets.trajectory import Trajectory, read_tum
 from flightkit.errors import EstimationError
 from flightkit.frames import Transform
@@ -209,6 +209,26 @@ def test_tum_rpy_native_rgbd_against_the_plain_rgbd_pipeline() -> None:
     assert ate < 0.7 * ate_g
     assert rpe_m < 0.9 * rpe_g
     assert ours.fps_cpu > 2.0 * plain.fps_cpu
+
+
+def test_sevenscenes_with_exposure_changes_against_the_plain_rgbd_pipeline() -> None:
+    """7-Scenes with the exposure changing from frame to frame (``exposure_sequence``: gains
+    log-normal, 15 % rms, seed 0), native 640x480: rgbd-kabsch with the gain measured and undone
+    before tracking (the default), against plain-rgbd (ORB, which the gain does not move) and
+    against itself without it. Measured 2026-11-27: ATE 5.5 vs 7.5 mm, RPE 3.90 vs 6.78 mm;
+    without the compensation 18.8 / 14.07 mm (as recorded: 5.2 / 3.88)."""
+    src = open_sequence(SHARED_DATA / "sevenscenes_tsdf50")
+    seq = exposure_sequence(src, np.exp(np.random.default_rng(0).normal(0.0, 0.15, len(src))))
+    gt = seq.groundtruth()
+    ate_p, rpe_p = _ate_rpe(run_plain(seq, "plain-rgbd", init_from_groundtruth=True), gt)
+    ours = run_vo(seq, "rgbd-kabsch", init_from_groundtruth=True)
+    ate, rpe_m = _ate_rpe(ours, gt)
+    fixed = run_vo(seq, "rgbd-kabsch", init_from_groundtruth=True, options=VoOptions(exposure_compensation=False))
+    ate_f, rpe_f = _ate_rpe(fixed, gt)
+    assert ours.n_failed == 0
+    assert ate < ate_p
+    assert rpe_m < 0.75 * rpe_p
+    assert rpe_m < 0.5 * rpe_f
 
 
 def test_kitti06_played_backwards_against_the_plain_stereo_pipeline(caplog: pytest.LogCaptureFixture) -> None:

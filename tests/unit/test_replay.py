@@ -10,7 +10,7 @@ import pytest
 
 from flightkit.datasets.base import CameraIntrinsics
 from flightkit.datasets.registry import open_sequence
-from flightkit.datasets.replay import mirror_rows_intrinsics, reversed_sequence, strided_sequence
+from flightkit.datasets.replay import exposure_sequence, mirror_rows_intrinsics, reversed_sequence, strided_sequence
 from flightkit.errors import DatasetError
 from flightkit.frames import Transform
 
@@ -103,3 +103,21 @@ def test_strided_sequence_keeps_every_nth_frame(rpy) -> None:  # type: ignore[no
         strided_sequence(rpy, 2, offset=2)
     with pytest.raises(DatasetError, match="at least 2 frames"):
         strided_sequence(rpy, len(rpy))
+
+
+def test_exposure_sequence_scales_the_images_and_leaves_depth(rpy) -> None:  # type: ignore[no-untyped-def]
+    gains = np.ones(len(rpy))
+    gains[1], gains[2] = 0.5, 2.0
+    seq = exposure_sequence(rpy, gains)
+    src = list(rpy.frames(0, 3))
+    out = list(seq.frames(0, 3))
+    np.testing.assert_array_equal(out[0].gray, src[0].gray)
+    np.testing.assert_array_equal(out[1].gray, np.rint(src[1].gray * 0.5).astype(np.uint8))
+    assert out[2].gray.max() == 255 and out[2].gray.dtype == np.uint8  # saturated, as a sensor is
+    np.testing.assert_array_equal(out[2].gray, np.minimum(src[2].gray.astype(int) * 2, 255))
+    np.testing.assert_array_equal(out[1].depth_raw, src[1].depth_raw)
+    np.testing.assert_array_equal(seq.stamps_ns(), rpy.stamps_ns())
+    with pytest.raises(DatasetError, match="one positive, finite gain per frame"):
+        exposure_sequence(rpy, gains[:-1])
+    with pytest.raises(DatasetError, match="one positive, finite gain per frame"):
+        exposure_sequence(rpy, np.zeros(len(rpy)))
