@@ -16,7 +16,7 @@ import numpy as np
 import numpy.typing as npt
 
 from estimation.camera_geometry import CameraGeometry, depth_weight
-from estimation.exposure import exposure_gain, match_exposure
+from estimation.exposure import Integral, exposure_gain, integral, match_exposure
 from estimation.features import DescriptorExtractor, Features, GridDetector, occupied_cells
 from estimation.flow import track_klt
 from estimation.matching import match_descriptors, match_stereo_rows
@@ -80,12 +80,18 @@ class FrontEnd:
         self.kf_rate: CameraRate | None = None
         self.next_id = 0
         self._kf_orb: tuple[Features, F64, Bool] | None = None
+        self._integral: tuple[U8, Integral] | None = None
+        """The last tracked image and its integral (exposure compensation)."""
 
     def track(self, prev: U8, cur: U8, guess: F32, trust_px: F64 | float) -> tuple[F32, Bool]:
         """Track the keyframe's points from the previous image into ``cur`` (LK, forward-backward
         checked, started at ``guess``); tracks that leave the image are not ok."""
         if self.opts.exposure_compensation:
-            gain = exposure_gain(prev, cur, self.trk_px, guess, self.grid.cell_px)
+            cached = self._integral
+            i_prev = cached[1] if (cached is not None and cached[0] is prev) else integral(prev)
+            i_cur = integral(cur)
+            self._integral = (cur, i_cur)  # the next frame's previous image
+            gain = exposure_gain(i_prev, i_cur, self.trk_px, guess, self.grid.cell_px)
             prev, cur = match_exposure(prev, cur, gain)
         return self._lk(prev, cur, self.trk_px, guess, self.geo.klt_back_levels, trust_px)
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from estimation.exposure import exposure_gain, match_exposure
+from estimation.exposure import exposure_gain, integral, match_exposure
 
 
 def _texture(seed: int = 0, shape: tuple[int, int] = (480, 640)) -> np.ndarray:
@@ -32,7 +32,7 @@ def test_gain_is_measured_through_a_motion_and_a_rough_prediction() -> None:
     guess = px + np.float32([6.0 + 3.0, -3.0])
     for gain in (0.7, 1.3):
         cur = np.clip(np.rint(shifted * gain), 0, 255).astype(np.uint8)
-        assert abs(exposure_gain(prev, cur, px, guess, 35) - gain) < 0.02 * gain
+        assert abs(exposure_gain(integral(prev), integral(cur), px, guess, 35) - gain) < 0.02 * gain
 
 
 def test_steady_exposure_is_left_alone() -> None:
@@ -41,12 +41,12 @@ def test_steady_exposure_is_left_alone() -> None:
     prev = np.clip(np.rint(tex), 0, 255).astype(np.uint8)
     cur_same = np.clip(np.rint(np.roll(tex, 6, axis=1)), 0, 255).astype(np.uint8)
     px = _points()
-    assert exposure_gain(prev, cur_same, px, px + np.float32([6.0, 0.0]), 35) == 1.0
+    assert exposure_gain(integral(prev), integral(cur_same), px, px + np.float32([6.0, 0.0]), 35) == 1.0
     other = np.clip(np.rint(_texture(seed=5)), 0, 255).astype(np.uint8)
     mixed = cur_same.copy()
     mixed[:, 320:] = other[:, 320:]  # half of the scene replaced: its ratios spread both ways
-    assert exposure_gain(prev, mixed, px, px + np.float32([6.0, 0.0]), 35) == 1.0
-    assert exposure_gain(prev, cur_same, px[:10], px[:10], 35) == 1.0  # too few points to tell
+    assert exposure_gain(integral(prev), integral(mixed), px, px + np.float32([6.0, 0.0]), 35) == 1.0
+    assert exposure_gain(integral(prev), integral(cur_same), px[:10], px[:10], 35) == 1.0  # too few points to tell
 
 
 def test_match_exposure_scales_the_brighter_image_down() -> None:
