@@ -7,11 +7,11 @@ fails the forward-backward check on many others.
 
 :func:`exposure_gain` measures the gain at the tracked points: the mean brightness of a square
 around each point (from the image's integral) in the previous frame and around its predicted
-position in the current one. The log-ratios' median is the gain; it
-is returned only when it is significant against the ratios' own spread (more than
-``z_min`` standard errors of the median from 1), so scene changes and prediction errors on a
-steady exposure leave the images untouched. :func:`match_exposure` then scales the brighter
-of the two images down to the other, which saturates nothing.
+position in the current one. The log-ratios' median is the gain; it is returned only when it is
+significant against the ratios' own spread (more than ``z_min`` standard errors of the median
+from 1), so scene changes and prediction errors on a steady exposure leave the images untouched.
+:func:`match_exposure` then scales the brighter of the two images down to the other, which
+saturates nothing.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ _MIN_POINTS = 20
 """Fewer usable points than this: no measurement (gain 1)."""
 
 _DARK, _BRIGHT = 10.0, 245.0
-"""Cell means outside (_DARK, _BRIGHT) are left out: near black or saturated, they do not scale."""
+"""Square means outside (_DARK, _BRIGHT) are left out: near black or saturated, they do not scale."""
 
 _SE_OF_MEDIAN = 1.2533 * 1.4826
 """Standard error of a median of n Gaussian samples is this times their MAD over sqrt(n)."""

@@ -85,7 +85,8 @@ class FrontEnd:
 
     def track(self, prev: U8, cur: U8, guess: F32, trust_px: F64 | float) -> tuple[F32, Bool]:
         """Track the keyframe's points from the previous image into ``cur`` (LK, forward-backward
-        checked, started at ``guess``); tracks that leave the image are not ok."""
+        checked, started at ``guess``, after undoing an exposure change: ``estimation.exposure``);
+        tracks that leave the image are not ok."""
         if self.opts.exposure_compensation:
             cached = self._integral
             i_prev = cached[1] if (cached is not None and cached[0] is prev) else integral(prev)
