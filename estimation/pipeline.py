@@ -208,6 +208,13 @@ def run_vo(
             continue
         if vo is None:
             T0 = pf.T_world_camera if (init_from_groundtruth and pf.T_world_camera is not None) else None
+            if init_from_groundtruth and T0 is None:
+                logger.warning(
+                    "%s: frame %d has no ground-truth pose, so VO starts at the origin, not at the ground "
+                    "truth; start at a frame that has one (start=...)",
+                    sequence.name,
+                    start + i,
+                )
             vo = VisualOdometry(
                 m,
                 prep.intrinsics,

@@ -185,13 +185,16 @@ def _run_vo(result: DemoResult, cfg: LabConfig, out: Path, method: str, tell: Sa
     seq = open_sequence(result.recording, mocap_body=cfg.mocap.body)
     assert isinstance(seq, McapSequence)
     gt = seq.groundtruth()
-    # Start at the first frame that has a mocap pose within 20 ms, so VO starts in the world frame,
-    # and whose depth image is at least half within the depth range: on the ground the camera is a
-    # few centimetres above the floor, below any depth camera's minimum range.
+    # Start at the first frame that has a mocap pose (so VO starts in the world frame: a frame in a
+    # mocap gap has none, and VO would start at the origin) and whose depth image is at least half
+    # within the depth range: on the ground the camera is a few centimetres above the floor, below
+    # any depth camera's minimum range.
     start = int(np.searchsorted(seq.stamps_ns(), gt.stamps_ns[0] - 20_000_000))
     skipped = start
     opts = VoOptions()
     for i, frame in enumerate(seq.frames(start), start):
+        if frame.T_world_camera is None:
+            continue
         d = frame.depth_m
         if d is None or np.mean((d > opts.min_depth_m) & (d < opts.max_depth_m)) >= 0.5:
             start = i
