@@ -330,7 +330,9 @@ def test_a_slow_mocap_stream_is_refused_before_arming() -> None:
 
     async def go() -> None:
         async with sim_session(autopilot="px4", speed=SPEED, mocap_rate_hz=20.0) as s:
-            with pytest.raises(SafetyAbort, match=r"mocap arrives at (19\.[5-9]|2\d\.\d) Hz, below 50 Hz") as info:
+            # the measured rate is the 20 Hz stream's within 10 %: on a loaded machine a late frame
+            # in the window reads as 19.3 Hz (a fresh-clone CI run)
+            with pytest.raises(SafetyAbort, match=r"mocap arrives at (1[89]|2[0-2])\.\d Hz, below 50 Hz") as info:
                 await fly_plan(plan, s.config, link=s.link, mocap=s.mocap, clock=s.clock, arm=True, log_path="")
             assert info.value.reason == "preflight"
             assert not s.lab.autopilot.armed
