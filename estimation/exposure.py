@@ -6,8 +6,9 @@ track along its intensity gradient (the patch is matched where the brightness ag
 fails the forward-backward check on many others.
 
 :func:`exposure_gain` measures the gain at the tracked points: the mean brightness of a square
-around each point (from the image's integral) in the previous frame and around its predicted
-position in the current one. The log-ratios' median is the gain; it is returned only when it is
+around each point in the previous frame and around its predicted position in the current one,
+from the integral of the image at half size (a square mean hardly changes, and the integral then
+fits in the cache). The log-ratios' median is the gain; it is returned only when it is
 significant against the ratios' own spread (more than ``z_min`` standard errors of the median
 from 1), so scene changes and prediction errors on a steady exposure leave the images untouched.
 :func:`match_exposure` then scales the brighter of the two images down to the other, which
@@ -39,30 +40,54 @@ _SE_OF_MEDIAN = 1.2533 * 1.4826
 """Standard error of a median of n Gaussian samples is this times their MAD over sqrt(n)."""
 
 
-Integral = npt.NDArray[np.float64]
-"""An image's integral, (H + 1) x (W + 1) (:func:`integral`)."""
+Integral = npt.NDArray[np.int32]
+"""The integral of an image at half size, (H // 2 + 1) x (W // 2 + 1) (:func:`integral`)."""
 
 
 def integral(image: U8) -> Integral:
-    """The integral of an 8-bit image (float64: exact at any size), for :func:`exposure_gain`."""
-    return np.asarray(cv2.integral(image, sdepth=cv2.CV_64F), dtype=np.float64)
+    """The integral of an 8-bit image halved (2x2 means; int32, exact up to 2^31 / 255 * 4 pixels),
+    for :func:`exposure_gain`."""
+    h, w = image.shape[0] // 2, image.shape[1] // 2
+    half = cv2.resize(image[: 2 * h, : 2 * w], (w, h), interpolation=cv2.INTER_AREA)
+    return np.asarray(cv2.integral(half), dtype=np.int32)
 
 
 @njit(cache=True)
-def _box_means(integ: Any, px: Any, cell_px: int) -> Any:
-    """The mean brightness of the ``cell_px`` square around each pixel (cut at the borders), from
-    the image's integral."""
+def _box_mean(integ: Any, x_px: float, y_px: float, half: int) -> float:
+    """The mean brightness of the square of half-side ``half`` (half-size pixels) around the
+    full-size pixel (x_px, y_px), cut at the borders, from the half-size image's integral."""
     h, w = integ.shape[0] - 1, integ.shape[1] - 1
-    half = cell_px // 2
-    out = np.empty(px.shape[0])
-    for i in range(px.shape[0]):
-        x, y = int(round(px[i, 0])), int(round(px[i, 1]))
-        x0, x1 = min(max(x - half, 0), w), min(max(x + half + 1, 0), w)
-        y0, y1 = min(max(y - half, 0), h), min(max(y + half + 1, 0), h)
-        n = (x1 - x0) * (y1 - y0)
-        total = integ[y1, x1] - integ[y0, x1] - integ[y1, x0] + integ[y0, x0]
-        out[i] = total / n if n > 0 else 0.0
-    return out
+    x, y = int(x_px * 0.5), int(y_px * 0.5)
+    x0, x1 = min(max(x - half, 0), w), min(max(x + half + 1, 0), w)
+    y0, y1 = min(max(y - half, 0), h), min(max(y + half + 1, 0), h)
+    n = int((x1 - x0) * (y1 - y0))
+    if n <= 0:
+        return 0.0
+    total = float(integ[y1, x1]) - float(integ[y0, x1]) - float(integ[y1, x0]) + float(integ[y0, x0])
+    return total / n
+
+
+@njit(cache=True)
+def _log_ratios(prev: Any, cur: Any, px_prev: Any, px_cur: Any, cell_px: int) -> Any:
+    """log(mean around ``px_cur`` in ``cur`` / mean around ``px_prev`` in ``prev``) over the points
+    whose squares (``cell_px`` full-size pixels) are neither near black nor saturated in either."""
+    half = max(cell_px // 4, 1)
+    out = np.empty(px_prev.shape[0])
+    n = 0
+    for i in range(px_prev.shape[0]):
+        a = _box_mean(prev, px_prev[i, 0], px_prev[i, 1], half)
+        b = _box_mean(cur, px_cur[i, 0], px_cur[i, 1], half)
+        if _DARK < a < _BRIGHT and _DARK < b < _BRIGHT:
+            out[n] = math.log(b / a)
+            n += 1
+    return out[:n]
+
+
+@njit(cache=True)
+def _median_and_mad(x: Any) -> tuple[float, float]:
+    """The median of ``x`` and the median absolute deviation from it."""
+    med = np.median(x)
+    return med, np.median(np.abs(x - med))
 
 
 def exposure_gain(
@@ -80,15 +105,12 @@ def exposure_gain(
     """
     if len(px_prev) < _MIN_POINTS:
         return 1.0
-    a = _box_means(prev, np.ascontiguousarray(px_prev, dtype=np.float64), int(cell_px))
-    b = _box_means(cur, np.ascontiguousarray(px_cur, dtype=np.float64), int(cell_px))
-    good = (a > _DARK) & (a < _BRIGHT) & (b > _DARK) & (b < _BRIGHT)
-    n = int(np.count_nonzero(good))
+    log_ratio = _log_ratios(prev, cur, px_prev, px_cur, int(cell_px))
+    n = len(log_ratio)
     if n < _MIN_POINTS:
         return 1.0
-    log_ratio = np.log(b[good] / a[good])
-    med = float(np.median(log_ratio))
-    se = _SE_OF_MEDIAN * float(np.median(np.abs(log_ratio - med))) / math.sqrt(n)
+    med, mad = _median_and_mad(log_ratio)
+    se = _SE_OF_MEDIAN * mad / math.sqrt(n)
     return math.exp(med) if abs(med) > z_min * se else 1.0
 
 

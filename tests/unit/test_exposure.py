@@ -5,7 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from estimation.exposure import exposure_gain, integral, match_exposure
+from estimation.exposure import _box_mean, exposure_gain, integral, match_exposure
 
 
 def _texture(seed: int = 0, shape: tuple[int, int] = (480, 640)) -> np.ndarray:
@@ -59,3 +59,21 @@ def test_match_exposure_scales_the_brighter_image_down() -> None:
     assert b is dark and np.abs(a.astype(int) - dark.astype(int)).max() <= 1
     a, b = match_exposure(dark, bright, 1.0)
     assert a is dark and b is bright
+
+
+def test_half_size_integral_gives_the_square_means_of_the_full_image() -> None:
+    """The integral is of the image halved (an odd size loses its last row and column): a square's
+    mean read from it is the full image's own within a grey level, and a brighter copy (x1.2) of
+    an odd-sized image measures 1.2."""
+    img = np.clip(np.rint(_texture(shape=(371, 641))), 0, 255).astype(np.uint8)
+    integ = integral(img)
+    assert integ.dtype == np.int32 and integ.shape == (185 + 1, 320 + 1)
+    halved = cv2.resize(img[:370, :640], (320, 185), interpolation=cv2.INTER_AREA)
+    assert integ[-1, -1] == int(halved.astype(np.int64).sum())
+    px = np.random.default_rng(2).uniform([0.0, 0.0], [641.0, 371.0], (200, 2)).astype(np.float32)
+    for x, y in px[:40]:
+        cx, cy = 2 * int(x * 0.5), 2 * int(y * 0.5)  # the square: 8 half-size pixels each side (cell 35)
+        direct = img[max(cy - 16, 0) : min(cy + 18, 370), max(cx - 16, 0) : min(cx + 18, 640)].mean()
+        assert abs(_box_mean(integ, float(x), float(y), 35 // 4) - direct) < 1.0
+    brighter = np.clip(np.rint(img.astype(np.float64) * 1.2), 0, 255).astype(np.uint8)
+    assert abs(exposure_gain(integral(img), integral(brighter), px, px, 35) - 1.2) < 0.01
