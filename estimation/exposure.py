@@ -48,6 +48,8 @@ def integral(image: U8) -> Integral:
     """The integral of an 8-bit image halved (2x2 means; int32, exact up to 2^31 / 255 * 4 pixels),
     for :func:`exposure_gain`."""
     h, w = image.shape[0] // 2, image.shape[1] // 2
+    if h == 0 or w == 0:  # a line of pixels: nothing to measure (every square reads as empty)
+        return np.zeros((h + 1, w + 1), np.int32)
     half = cv2.resize(image[: 2 * h, : 2 * w], (w, h), interpolation=cv2.INTER_AREA)
     return np.asarray(cv2.integral(half), dtype=np.int32)
 
