@@ -79,6 +79,7 @@ PACED_MODULES = frozenset({
     "tests/integration/test_preflight_failsafe.py",
     "tests/integration/test_report_pty.py",
     "tests/integration/test_sim_autopilot.py",
+    "tests/integration/test_sim_autopilot_flight.py",
     "tests/integration/test_sim_stepper.py",
     "tests/unit/test_clock.py",
 })
