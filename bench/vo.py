@@ -81,7 +81,12 @@ from estimation.pipeline import (  # noqa: E402
     warm_up,
 )
 from flightkit.datasets.registry import open_sequence  # noqa: E402
-from flightkit.datasets.replay import exposure_sequence, reversed_sequence, strided_sequence  # noqa: E402
+from flightkit.datasets.replay import (  # noqa: E402
+    exposure_sequence,
+    lognormal_gains,
+    reversed_sequence,
+    strided_sequence,
+)
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
@@ -140,7 +145,7 @@ REPLAYS: dict[str, Any] = {
     "forward": lambda seq: seq,
     "reverse": reversed_sequence,
     "every2": lambda seq: strided_sequence(seq, 2),
-    "exposure": lambda seq: exposure_sequence(seq, np.exp(np.random.default_rng(0).normal(0.0, 0.15, len(seq)))),
+    "exposure": lambda seq: exposure_sequence(seq, lognormal_gains(len(seq))),
 }
 """``--replay`` names and how each replays a sequence."""
 

@@ -13,7 +13,8 @@ motion it was not tuned on (``bench/vo.py --replay``):
   ``T' = S T S`` with ``S = diag(1, -1, 1)``, still a proper rotation).
 * :func:`strided_sequence` keeps every ``step``-th frame from ``offset`` on: the same camera at
   a lower frame rate, so each step is ``step`` times larger.
-* :func:`exposure_sequence` multiplies each frame's images by a gain, as a camera's automatic
+* :func:`exposure_sequence` multiplies each frame's images by a gain (:func:`lognormal_gains`: the
+  bench's and the tests' seeded set), as a camera's automatic
   exposure does from frame to frame (the depth images are left as they are).
 
 The result is a :class:`~flightkit.datasets.base.Sequence` like any other: ``run_vo``,
@@ -38,6 +39,7 @@ from flightkit.frames import Transform
 __all__ = [
     "ReplayedSequence",
     "exposure_sequence",
+    "lognormal_gains",
     "mirror_rows_intrinsics",
     "reversed_sequence",
     "strided_sequence",
@@ -212,3 +214,9 @@ def exposure_sequence(source: Sequence, gains: npt.ArrayLike) -> ReplayedSequenc
     spread = float(np.std(np.log(g))) if len(g) and np.all(g > 0) else float("nan")
     name = f"{source.name} with exposure changes ({100 * spread:.0f} % rms)"
     return ReplayedSequence(source, list(range(len(source))), False, name, gains=g)
+
+
+def lognormal_gains(n: int, rms: float = 0.15, seed: int = 0) -> npt.NDArray[np.float64]:
+    """``n`` exposure gains whose logarithms are normal with standard deviation ``rms`` (seeded):
+    the exposure replay of the bench and the tests (:func:`exposure_sequence`)."""
+    return np.exp(np.random.default_rng(seed).normal(0.0, rms, n))
