@@ -48,5 +48,9 @@ def test_a_flight_logs_and_prints_its_latency_stages_with_a_20_ms_mocap(tmp_path
     data = read_flight_log(log)
     pattern = np.array([ph == "pattern" for ph in data["phase"]])
     assert np.median(data["capture_to_bus_s"][pattern]) == pytest.approx(0.020, abs=0.001)
-    assert np.all(data["runner_to_setpoint_s"][pattern] > 0.0)
+    # a setpoint follows its pose; in the same simulated instant when the clock holds for a late
+    # sleeper on a loaded host (flightkit.clock.SimClock), so zero is a valid sample, never negative
+    runner_to_setpoint = data["runner_to_setpoint_s"][pattern]
+    assert np.all(np.isfinite(runner_to_setpoint) & (runner_to_setpoint >= 0.0))
+    assert np.median(runner_to_setpoint) > 0.0
     assert summary.to_dict()["stage_latency_ms"]["capture->bus"]["p50"] == pytest.approx(20.0, abs=1.0)
