@@ -28,6 +28,12 @@ Per run it prints:
   ground-truth path length;
 * the quality counts (estimated / predicted / fallback frames) and keyframes.
 
+``--spread N`` reruns every row without an ``@variant`` (``--ba`` rows included) on N copies of the
+sequence whose exposure is jittered by an amount no eye would see (gains log-normal, 0.5 % rms,
+seeds 0..N-1) and prints the mean and standard deviation of its errors: on these short sequences
+a single run is one draw (KITTI's SE3 ATE moves by +-20 % between such copies, for ours and for
+plain), so a comparison of two methods is read on the means, against the spreads.
+
 ``--synthetic`` adds the three lab patterns (the simulated camera, exact ground truth, rendered
 before timing at each size: ``bench/_synthetic.py``).
 
@@ -39,7 +45,8 @@ from frame to frame (gains log-normal, 15 % rms, seed 0) (``flightkit.datasets.r
 same real data with motion and lighting nothing was tuned on.
 
 Run: .venv/bin/python bench/vo.py [--only kitti06,tum_rpy] [--sizes native,640x480] [--rounds 1]
-     [--no-sift] [--ba 4] [--features 450,600] [--replay forward,reverse,every2,exposure] [--synthetic]
+     [--no-sift] [--ba 4] [--features 450,600] [--replay forward,reverse,every2,exposure] [--spread 6]
+     [--synthetic]
      [--json out.json] [--cpu N]
 """
 
@@ -149,6 +156,9 @@ REPLAYS: dict[str, Any] = {
 }
 """``--replay`` names and how each replays a sequence."""
 
+SPREAD_GAIN_RMS = 0.005
+"""``--spread``: the exposure jitter of each copy (log-normal gains, rms of their logarithm)."""
+
 
 def metrics(res: VoResult, gt: Any) -> dict[str, float]:
     """ATE (SE3, Sim3 and its scale), RPE, rotation errors and end-point drift of a run that
@@ -203,6 +213,30 @@ def fmt(key: str, size: str, name: str, fps: float, best: float, e: dict[str, fl
     )
 
 
+def spread_rows(
+    seq: Any, plan: list[tuple[str, str, Any]], size: tuple[int, int], n: int, gt: Any
+) -> list[dict[str, Any]]:
+    """``--spread``: every default row of ``plan`` on ``n`` exposure-jittered copies of ``seq``;
+    prints the mean and standard deviation of ATE, Sim3 ATE and RPE, returns them as JSON rows."""
+    copies = [exposure_sequence(seq, lognormal_gains(len(seq), SPREAD_GAIN_RMS, seed)) for seed in range(n)]
+    print(f"-- over {n} copies, exposure jittered {100 * SPREAD_GAIN_RMS:.1f} % rms: mean +- sd")
+    out: list[dict[str, Any]] = []
+    for name, what, opts in plan:
+        if "@" in name or "#" in name or what == "sift":
+            continue
+        errs = [metrics(run_one(c, what, opts, size), gt) for c in copies]
+        stats = {k: (float(np.mean([e[k] for e in errs])), float(np.std([e[k] for e in errs]))) for k in errs[0]}
+        (a, sa), (b, sb), (r, sr) = stats["ate_m"], stats["ate_sim3_m"], stats["rpe_mm"]
+        print(
+            f"{'':12} {'':9} {name:16} ATE {a:.4f} +- {sa:.4f}  Sim3 {b:.4f} +- {sb:.4f}  RPE mm {r:.2f} +- {sr:.2f}",
+            flush=True,
+        )
+        means = {f"{k}_mean": v[0] for k, v in stats.items()}
+        sds = {f"{k}_sd": v[1] for k, v in stats.items()}
+        out.append({"method": name, "copies": n, "gain_rms": SPREAD_GAIN_RMS, **means, **sds})
+    return out
+
+
 def run_one(seq: Any, what: str, opts: VoOptions | None, size: tuple[int, int]) -> VoResult:
     """One run started at the first ground-truth pose: a flightkit method, a plain baseline or the SIFT pipeline."""
     if what == "sift":
@@ -225,6 +259,9 @@ def main() -> int:
     )
     ap.add_argument(
         "--replay", default="forward", help=f"comma-separated replays of each sequence: {', '.join(REPLAYS)}"
+    )
+    ap.add_argument(
+        "--spread", type=int, default=0, help="also run the default rows on N copies with the exposure jittered"
     )
     ap.add_argument("--only", help="comma-separated sequence keys")
     ap.add_argument("--synthetic", action="store_true", help="add the synthetic lab-pattern sequences")
@@ -300,6 +337,9 @@ def main() -> int:
                         "keyframes": int(res.keyframe.sum()),
                     }
                 )
+            if args.spread > 0 and len(seq) >= 4:
+                for row in spread_rows(seq, plan, size, args.spread, gt):
+                    rows.append({"sequence": key, "size": label, "replay": replay, "spread": True, **row})
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
         print(f"\nwrote {args.json}")

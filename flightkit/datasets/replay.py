@@ -212,7 +212,7 @@ def exposure_sequence(source: Sequence, gains: npt.ArrayLike) -> ReplayedSequenc
     and saturated at 255: a camera's exposure changing from frame to frame. Depth is unchanged."""
     g = np.asarray(gains, dtype=np.float64).reshape(-1)
     spread = float(np.std(np.log(g))) if len(g) and np.all(g > 0) else float("nan")
-    name = f"{source.name} with exposure changes ({100 * spread:.0f} % rms)"
+    name = f"{source.name} with exposure changes ({100 * spread:.2g} % rms)"
     return ReplayedSequence(source, list(range(len(source))), False, name, gains=g)
 
 
