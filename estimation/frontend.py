@@ -308,9 +308,13 @@ class FrontEnd:
             self._kf_orb = (f, X, ok)
         return self._kf_orb
 
-    def orb_fallback(self, gray: U8, guess: F64, rate: CameraRate | None = None) -> Motion | None:
+    def orb_fallback(
+        self, gray: U8, guess: F64, rate: CameraRate | None = None
+    ) -> tuple[Motion, F64, F32, F64] | None:
         """The keyframe-to-current motion from ORB matches against the keyframe (when tracking
-        failed), or None; ``rate``: the camera's predicted rate at ``gray``."""
+        failed), or None; ``rate``: the camera's predicted rate at ``gray``. With the motion (its
+        inliers over the matches), the matches: keyframe points, current pixels, and those pixels
+        undistorted (for the caller's polish)."""
         f_kf, X_kf, ok_kf = self._keyframe_orb()
         f_cur = self.orb.extract(gray)
         ia, ib = match_descriptors(f_kf, f_cur, ratio=0.8, mutual=True)
@@ -320,9 +324,11 @@ class FrontEnd:
         o = self.opts
         if len(ia) < o.min_inliers:
             return None
+        X, px = X_kf[ia], np.ascontiguousarray(f_cur.pts_px[ib], dtype=np.float32)
+        und = self.geo.undistort(px, rate)
         m = pnp(
-            X_kf[ia],
-            self.geo.undistort(f_cur.pts_px[ib], rate),
+            X,
+            und,
             self.geo.K,
             method=o.pnp_method,
             reproj_px=o.reproj_px * 1.5,
@@ -330,4 +336,4 @@ class FrontEnd:
             guess_T_cur_ref=guess,
             ransac_kernel=o.pnp_kernel,
         )
-        return m if m.ok else None
+        return (m, X, px, und) if m.ok else None

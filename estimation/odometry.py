@@ -371,8 +371,14 @@ class VisualOdometry:
         quality = Quality.GOOD
         fallback = False
         if motion is None and o.orb_fallback:
-            motion = front.orb_fallback(gray, T_pred_cur_kf, rate)
-            fallback = motion is not None
+            found = front.orb_fallback(gray, T_pred_cur_kf, rate)
+            if found is not None:
+                # The same depth polish as the tracked steps get; its measurements index the ORB
+                # matches, not the tracks, so nothing is fused from them.
+                m_fb, X_m, px_m, und_m = found
+                motion = self.polisher.polish(m_fb, X_m, px_m, und_m, depth_m, gray, right_gray, rate=rate)
+                self.polisher.meas = None
+                fallback = True
             quality = Quality.FALLBACK
         T_cur_kf = T_pred_cur_kf
         n_inl = 0

@@ -276,20 +276,26 @@ def test_tum_rpy_played_backwards_against_the_plain_rgbd_pipeline() -> None:
 
 def test_orb_fallback_recovers_a_jump_that_tracking_cannot_follow() -> None:
     """Frames 0 -> 5 of KITTI (6 m forward, no motion prior yet): with the far points dropped, LK
-    tracking loses the near ones and ORB matching against the keyframe recovers the pose; by
+    tracking loses the near ones and ORB matching against the keyframe recovers the pose, which
+    then gets the depth polish (here the current pair's disparities) like a tracked step; by
     default the far points keep tracking through the jump."""
     seq = open_sequence(SHARED_DATA / "kitti06_stereo")
     frames = list(seq.frames(0, 6))
     assert frames[0].T_world_camera is not None and frames[5].T_world_camera is not None
     gt = (frames[0].T_world_camera.inverse() @ frames[5].T_world_camera).translation
     near_only = VoOptions(far_points="drop", stereo_offset=False)
-    for options, quality, bound_m in ((near_only, Quality.FALLBACK, 0.7), (None, Quality.GOOD, 0.3)):
+    for options, quality, bound_m in ((near_only, Quality.FALLBACK, 0.5), (None, Quality.GOOD, 0.3)):
         vo = VisualOdometry("stereo", seq.intrinsics, seq.baseline_m, options=options)
         vo.process(frames[0].stamp_ns, frames[0].gray, frames[0].right_gray)
+        raw = vo.front.orb_fallback(frames[5].gray, np.eye(4))  # the ORB PnP alone, unpolished
         p = vo.process(frames[5].stamp_ns, frames[5].gray, frames[5].right_gray)
         assert p.quality is quality
-        # measured 0.49 m (fallback) and 0.12 m (default) on a 5.96 m jump
-        assert np.linalg.norm(p.T_world_camera[:3, 3] - gt) < bound_m
+        err_m = np.linalg.norm(p.T_world_camera[:3, 3] - gt)
+        # measured 0.31 m (fallback; 0.39 m unpolished) and 0.13 m (default) on a 5.96 m jump
+        assert err_m < bound_m
+        if quality is Quality.FALLBACK:
+            assert raw is not None
+            assert err_m < 0.9 * np.linalg.norm(invert(raw[0].T_cur_ref)[:3, 3] - gt)
 
 
 def test_flow_with_per_point_stereo_depth_handles_a_forward_camera() -> None:
