@@ -308,9 +308,13 @@ class FrontEnd:
             self._kf_orb = (f, X, ok)
         return self._kf_orb
 
-    def orb_fallback(
-        self, gray: U8, guess: F64, rate: CameraRate | None = None
-    ) -> tuple[Motion, F64, F32, F64] | None:
+    @property
+    def fallback_reproj_px(self) -> float:
+        """The ORB fallback's inlier tolerance, px: 1.5x the tracked steps' (ORB corners on the
+        blurred frames where tracking fails are less precise)."""
+        return 1.5 * self.opts.reproj_px
+
+    def orb_fallback(self, gray: U8, guess: F64, rate: CameraRate | None = None) -> tuple[Motion, F64, F32, F64] | None:
         """The keyframe-to-current motion from ORB matches against the keyframe (when tracking
         failed), or None; ``rate``: the camera's predicted rate at ``gray``. With the motion (its
         inliers over the matches), the matches: keyframe points, current pixels, and those pixels
@@ -331,7 +335,7 @@ class FrontEnd:
             und,
             self.geo.K,
             method=o.pnp_method,
-            reproj_px=o.reproj_px * 1.5,
+            reproj_px=self.fallback_reproj_px,
             min_inliers=o.min_inliers,
             guess_T_cur_ref=guess,
             ransac_kernel=o.pnp_kernel,

@@ -373,10 +373,12 @@ class VisualOdometry:
         if motion is None and o.orb_fallback:
             found = front.orb_fallback(gray, T_pred_cur_kf, rate)
             if found is not None:
-                # The same depth polish as the tracked steps get; its measurements index the ORB
-                # matches, not the tracks, so nothing is fused from them.
+                # The same depth polish as the tracked steps get, at the fallback's tolerance; its
+                # measurements index the ORB matches, not the tracks, so nothing is fused from them.
                 m_fb, X_m, px_m, und_m = found
-                motion = self.polisher.polish(m_fb, X_m, px_m, und_m, depth_m, gray, right_gray, rate=rate)
+                motion = self.polisher.polish(
+                    m_fb, X_m, px_m, und_m, depth_m, gray, right_gray, rate=rate, reproj_px=front.fallback_reproj_px
+                )
                 self.polisher.meas = None
                 fallback = True
             quality = Quality.FALLBACK

@@ -121,13 +121,15 @@ class PosePolisher:
         var_kf: F64 | None = None,
         rate: CameraRate | None = None,
         und_lens: F64 | None = None,
+        reproj_px: float | None = None,
     ) -> Motion:
         """The same polish as PnP's for a motion found otherwise (5-point, Kabsch): reprojection
         of the keyframe points plus this frame's depth (``refine_with_depth``), inliers
         re-selected on the result; the depth measurements are kept for fusion. ``z_cur``: the
         depth at ``px_cur`` (at the frame's stamp) when the caller has looked it up already
         (Kabsch); ``rate``: the camera's (a rolling shutter); ``und_lens``: ``px_cur`` without the
-        lens distortion, if known (:meth:`refine`)."""
+        lens distortion, if known (:meth:`refine`); ``reproj_px``: the re-selection's inlier
+        tolerance (None: ``VoOptions.reproj_px``)."""
         o = self.opts
         if not (m.ok and o.refine_with_depth):
             return m
@@ -145,7 +147,8 @@ class PosePolisher:
             rate,
             _subset(und_lens, mask),
         )
-        refined = mask & (self.geo.reproj_err2(T, X_kf, und_cur) < o.reproj_px**2)
+        tol = o.reproj_px if reproj_px is None else reproj_px
+        refined = mask & (self.geo.reproj_err2(T, X_kf, und_cur) < tol**2)
         if np.count_nonzero(refined) < o.min_inliers:
             self.meas = None
             return m
