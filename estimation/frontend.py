@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import math
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -26,7 +27,7 @@ from estimation.revisit import StoredKeyframe
 from estimation.rolling_shutter import CameraRate
 from estimation.vo_options import VoOptions
 
-__all__ = ["FrontEnd", "grid_detector"]
+__all__ = ["FallbackMatch", "FrontEnd", "grid_detector"]
 
 logger = logging.getLogger(__name__)
 
@@ -43,6 +44,16 @@ def grid_detector(geometry: CameraGeometry, options: VoOptions, score: str = "fa
     w, h = geometry.intr.width, geometry.intr.height
     cell = options.cell_px or max(12, int(math.sqrt(w * h / options.max_features) * 1.1))
     return GridDetector(options.max_features, cell, options.fast_threshold, border_px=options.border_px, score=score)
+
+
+class FallbackMatch(NamedTuple):
+    """The ORB fallback's result (:meth:`FrontEnd.orb_fallback`): the motion, its inliers over the
+    matches, and the matches (keyframe points, current pixels, those pixels undistorted)."""
+
+    motion: Motion
+    X_kf: F64
+    px_cur: F32
+    und_cur: F64
 
 
 class FrontEnd:
@@ -314,11 +325,10 @@ class FrontEnd:
         blurred frames where tracking fails are less precise)."""
         return 1.5 * self.opts.reproj_px
 
-    def orb_fallback(self, gray: U8, guess: F64, rate: CameraRate | None = None) -> tuple[Motion, F64, F32, F64] | None:
+    def orb_fallback(self, gray: U8, guess: F64, rate: CameraRate | None = None) -> FallbackMatch | None:
         """The keyframe-to-current motion from ORB matches against the keyframe (when tracking
-        failed), or None; ``rate``: the camera's predicted rate at ``gray``. With the motion (its
-        inliers over the matches), the matches: keyframe points, current pixels, and those pixels
-        undistorted (for the caller's polish)."""
+        failed), with the matches for the caller's polish, or None; ``rate``: the camera's
+        predicted rate at ``gray``."""
         f_kf, X_kf, ok_kf = self._keyframe_orb()
         f_cur = self.orb.extract(gray)
         ia, ib = match_descriptors(f_kf, f_cur, ratio=0.8, mutual=True)
@@ -340,4 +350,4 @@ class FrontEnd:
             guess_T_cur_ref=guess,
             ransac_kernel=o.pnp_kernel,
         )
-        return (m, X, px, und) if m.ok else None
+        return FallbackMatch(m, X, px, und) if m.ok else None

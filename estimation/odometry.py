@@ -375,9 +375,16 @@ class VisualOdometry:
             if found is not None:
                 # The same depth polish as the tracked steps get, at the fallback's tolerance; its
                 # measurements index the ORB matches, not the tracks, so nothing is fused from them.
-                m_fb, X_m, px_m, und_m = found
                 motion = self.polisher.polish(
-                    m_fb, X_m, px_m, und_m, depth_m, gray, right_gray, rate=rate, reproj_px=front.fallback_reproj_px
+                    found.motion,
+                    found.X_kf,
+                    found.px_cur,
+                    found.und_cur,
+                    depth_m,
+                    gray,
+                    right_gray,
+                    rate=rate,
+                    reproj_px=front.fallback_reproj_px,
                 )
                 self.polisher.meas = None
                 fallback = True

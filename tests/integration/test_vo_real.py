@@ -295,7 +295,7 @@ def test_orb_fallback_recovers_a_jump_that_tracking_cannot_follow() -> None:
         assert err_m < bound_m
         if quality is Quality.FALLBACK:
             assert raw is not None
-            assert err_m < 0.9 * np.linalg.norm(invert(raw[0].T_cur_ref)[:3, 3] - gt)
+            assert err_m < 0.9 * np.linalg.norm(invert(raw.motion.T_cur_ref)[:3, 3] - gt)
 
 
 def test_flow_with_per_point_stereo_depth_handles_a_forward_camera() -> None:
