@@ -14,6 +14,7 @@ import numpy as np
 import numpy.typing as npt
 
 from estimation import _kernels
+from estimation.lk import PyramidCache
 from estimation.rolling_shutter import CameraRate, RollingShutter
 from estimation.stereo import StereoRig, row_disparity, sparse_disparity, triangulate
 from estimation.vo_options import VoOptions
@@ -115,6 +116,8 @@ class CameraGeometry:
         self.klt_levels = 3 if options.klt_levels is None else options.klt_levels
         self.klt_back_levels = min(options.klt_back_levels, self.klt_levels)
         self.stereo_win = options.stereo_win_px or self.klt_win
+        self.pyramids = PyramidCache(self.klt_levels, max(self.klt_win, self.stereo_win))
+        """The LK pyramids of the run's last images (each built once, for tracking and stereo)."""
         readout_s = intrinsics.readout_s if options.readout_s is None else options.readout_s
         self.shutter = (
             RollingShutter(readout_s, intrinsics.height, intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy)
@@ -262,8 +265,8 @@ class CameraGeometry:
         """Disparities by LK from ``init_disp`` into the right image, row-checked (``sparse_disparity``;
         ``levels``: pyramid levels, None: the tracking's)."""
         return sparse_disparity(
-            left,
-            right,
+            self.pyramids(left),
+            self.pyramids(right),
             np.ascontiguousarray(px),
             init_disp,
             fb_max_px=self.opts.fb_max_px if self.opts.stereo_fb_check else None,

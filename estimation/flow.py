@@ -36,6 +36,7 @@ import numpy.typing as npt
 
 from estimation import _kernels
 from estimation.features import DescriptorExtractor
+from estimation.lk import ImagePyramid, lk_track, pyramid_of
 from estimation.matching import match_stereo_rows
 from estimation.motion import invert, make_T
 from estimation.pnp import refine_pose
@@ -55,12 +56,13 @@ logger = logging.getLogger(__name__)
 F64 = npt.NDArray[np.float64]
 Image = npt.NDArray[np.uint8]
 
-_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.03)
+_EPS_PX = 0.03
+"""LK stops iterating on a level when its step is shorter than this (OpenCV's usual 0.03)."""
 
 
 def track_klt(
-    prev: Image,
-    cur: Image,
+    prev: Image | ImagePyramid,
+    cur: Image | ImagePyramid,
     pts_prev: npt.NDArray[np.float32],
     fb_max_px: float | None = 1.0,
     win_px: int = 21,
@@ -73,23 +75,18 @@ def track_klt(
     """Track points from ``prev`` to ``cur`` with a forward-backward consistency check.
 
     Args:
-        prev, cur: 8-bit images. (OpenCV's Python binding cannot take prebuilt pyramids, so
-            each call builds them; keep ``levels`` small for small images.)
+        prev, cur: 8-bit images, or their pyramids (:class:`ImagePyramid`, built once per image
+            and shared by every track from or into it; an image's is built here).
         pts_prev: (N, 2) float32 positions in ``prev``.
         fb_max_px: a track is kept when tracking it back lands within this distance; None
             skips the backward pass (half the cost; for callers with their own check).
         guess: (N, 2) predicted positions in ``cur`` (e.g. from a motion prior), or None.
-        back_levels: pyramid levels of the backward pass (None: ``levels``). The backward
-            pass starts at the true answer (the point's old position), so it needs no coarse
-            levels to reach it: a correct track returns at once, a wrong one (whose patch
-            differs) does not settle there. Every level costs about as much as the finest
-            one, so 1 here instead of 3 saves half of the backward pass.
+        back_levels: pyramid levels of the backward pass (None: ``levels``). It starts at the
+            point's old position, so a correct track returns at once and a wrong one does not.
         max_iters: LK iterations per level at most (it also stops on a 0.03 px step).
-        trust_guess_px: with ``guess``, a track that ends within this distance of its guess
-            is kept without the backward pass: the guess (e.g. from the motion prior) is
-            evidence of its own, and a track that agrees with it does not need a second one.
-            Only the others are tracked back (0: all are). A scalar or one value per point
-            (e.g. 0 for points without a real prediction).
+        trust_guess_px: with ``guess``, a track that ends within this distance of its guess is
+            kept without the backward pass (the guess is evidence of its own); only the others
+            are tracked back (0: all are). A scalar or one value per point.
 
     Returns:
         ``(pts_cur, ok)``: (N, 2) float32 positions and (N,) bool validity.
@@ -97,53 +94,26 @@ def track_klt(
     n = len(pts_prev)
     if n == 0:
         return np.empty((0, 2), np.float32), np.zeros(0, dtype=bool)
-    p0 = np.ascontiguousarray(pts_prev, dtype=np.float32).reshape(-1, 1, 2)
-    flags = 0
-    p1_init = None
-    if guess is not None:
-        p1_init = np.ascontiguousarray(guess, dtype=np.float32).reshape(-1, 1, 2).copy()
-        flags = cv2.OPTFLOW_USE_INITIAL_FLOW
-    win = (win_px, win_px)
-    criteria = _CRITERIA if max_iters == _CRITERIA[1] else (_CRITERIA[0], max_iters, _CRITERIA[2])
-    p1_mat, st1_mat, _ = cv2.calcOpticalFlowPyrLK(
-        prev,
-        cur,
-        p0,
-        p1_init,  # type: ignore[arg-type]  # cv2's stub requires nextPts; None means no initial flow
-        winSize=win,
-        maxLevel=levels,
-        criteria=criteria,
-        flags=flags,
-    )
-    p1 = cast("npt.NDArray[np.float32]", p1_mat)  # (N, 1, 2)
-    st1 = cast("npt.NDArray[np.uint8]", st1_mat)  # (N, 1)
+    back = levels if back_levels is None else back_levels
+    prev_pyr = pyramid_of(prev, max(levels, back), win_px)
+    cur_pyr = pyramid_of(cur, max(levels, back), win_px)
+    p0 = np.ascontiguousarray(pts_prev, dtype=np.float32).reshape(-1, 2)
+    p1, ok = lk_track(prev_pyr, cur_pyr, p0, guess, levels, win_px, max_iters, _EPS_PX)
     if fb_max_px is None:
-        return p1.reshape(-1, 2), st1.ravel() == 1
-    ok = st1.ravel() == 1
+        return p1, ok
     check = ok
     trust = np.asarray(trust_guess_px, dtype=np.float64)
     if guess is not None and np.any(trust > 0):
-        # (p1 may share p1_init's buffer: compare with the caller's guess.)
-        dg = p1 - np.asarray(guess, dtype=np.float32).reshape(-1, 1, 2)
-        check = ok & (np.einsum("nij,nij->n", dg, dg) >= trust * trust)
+        dg = p1 - np.asarray(guess, dtype=np.float32).reshape(-1, 2)
+        check = ok & (np.einsum("ni,ni->n", dg, dg) >= trust * trust)
     sel = np.flatnonzero(check)
     if len(sel) == 0:
-        return p1.reshape(-1, 2), ok
+        return p1, ok
     p0s = p0[sel]
-    p0b_mat, st2_mat, _ = cv2.calcOpticalFlowPyrLK(
-        cur,
-        prev,
-        np.ascontiguousarray(p1[sel]),
-        p0s.copy(),
-        winSize=win,
-        maxLevel=levels if back_levels is None else back_levels,
-        criteria=criteria,
-        flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
-    )
-    p0b, st2 = cast("npt.NDArray[np.float32]", p0b_mat), cast("npt.NDArray[np.uint8]", st2_mat)
-    fb = np.einsum("nij,nij->n", p0b - p0s, p0b - p0s)
-    ok[sel] = (st2.ravel() == 1) & (fb < fb_max_px * fb_max_px)
-    return p1.reshape(-1, 2), ok
+    p0b, st2 = lk_track(cur_pyr, prev_pyr, p1[sel], p0s, back, win_px, max_iters, _EPS_PX)
+    fb = np.einsum("ni,ni->n", p0b - p0s, p0b - p0s)
+    ok[sel] = st2 & (fb < fb_max_px * fb_max_px)
+    return p1, ok
 
 
 def interaction_matrix(x: F64, y: F64, Z: F64 | float) -> F64:

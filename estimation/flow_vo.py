@@ -133,8 +133,8 @@ class FlowEstimator:
         # when the reference is the previous frame: LK's own pyramid finds the motion).
         one_step = ref.stamp_ns == pose.prev_stamp_ns
         px, ok = track_klt(
-            ref.gray,
-            gray,
+            geo.pyramids(ref.gray),
+            geo.pyramids(gray),
             ref.pts,
             o.fb_max_px,
             geo.klt_win,

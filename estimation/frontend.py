@@ -114,8 +114,8 @@ class FrontEnd:
         levels and forward-backward check; tracks that end outside ``cur`` are not ok."""
         g, o = self.geo, self.opts
         px, ok = track_klt(
-            prev,
-            cur,
+            g.pyramids(prev),
+            g.pyramids(cur),
             px0,
             o.fb_max_px,
             g.klt_win,

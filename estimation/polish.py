@@ -193,8 +193,8 @@ class PosePolisher:
             d_min = self.opts.min_disparity_px
             sel = np.flatnonzero(init > min(d_min - 2.0, d_min / 1.3))
             disp, ok = sparse_disparity(
-                gray,
-                right_gray,
+                geo.pyramids(gray),
+                geo.pyramids(right_gray),
                 np.ascontiguousarray(px[sel]),
                 init[sel],
                 fb_max_px=None,

@@ -23,6 +23,7 @@ import numpy.typing as npt
 
 from estimation._row_kernel import row_match
 from estimation.flow import track_klt
+from estimation.lk import ImagePyramid
 from flightkit.errors import EstimationError
 
 __all__ = ["DenseDisparity", "StereoRig", "row_disparity", "sparse_disparity", "triangulate"]
@@ -55,8 +56,8 @@ class StereoRig:
 
 
 def sparse_disparity(
-    left: npt.NDArray[np.uint8],
-    right: npt.NDArray[np.uint8],
+    left: npt.NDArray[np.uint8] | ImagePyramid,
+    right: npt.NDArray[np.uint8] | ImagePyramid,
     pts_left: npt.NDArray[np.float32],
     init_disparity_px: npt.NDArray[np.float32] | float = 0.0,
     max_dy_px: float = 1.0,
@@ -69,7 +70,7 @@ def sparse_disparity(
     """Disparity of left points by LK tracking into the right image along rows.
 
     Args:
-        left, right: rectified 8-bit images.
+        left, right: rectified 8-bit images, or their pyramids.
         pts_left: (N, 2) float32 left pixels.
         init_disparity_px: starting guess (N,) or scalar (a point's last disparity helps a lot
             for near objects, whose disparity exceeds the pyramid's reach).

@@ -1,0 +1,168 @@
+"""Pyramidal Lucas-Kanade tracking on image pyramids built once per image.
+
+OpenCV's ``calcOpticalFlowPyrLK`` builds both images' pyramids and the first image's derivatives
+on every call (its Python binding takes no prebuilt pyramid), which at 640x480 costs more than
+tracking a few hundred points. Here an image's :class:`ImagePyramid` is built once and serves every
+track from or into it (forward, backward, stereo); :func:`lk_track` runs Bouguet's iteration as
+OpenCV does (``estimation._lk_kernel``), so the results agree with OpenCV's to ~1e-4 px.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from estimation import _lk_kernel
+from flightkit.errors import EstimationError
+
+__all__ = ["ImagePyramid", "PyramidCache", "lk_track", "pyramid_of"]
+
+U8 = npt.NDArray[np.uint8]
+F32 = npt.NDArray[np.float32]
+
+MIN_EIG = 1e-4
+"""OpenCV's default ``minEigThreshold``: windows flatter than this are not tracked."""
+
+
+@dataclass(frozen=True, eq=False)
+class ImagePyramid:
+    """An 8-bit image and its Gaussian pyramid (``cv2.pyrDown``), each level padded by reflection.
+
+    Attributes:
+        image: level 0 as given (H, W) uint8.
+        levels: the number of levels above level 0 that were built.
+        pad_px: border added to every level; windows up to ``pad_px - 2`` pixels wide fit.
+        flat: all padded levels, one after the other.
+        offsets: where each level starts in ``flat``.
+        sizes: (levels + 1, 2) width and height of each level before padding.
+    """
+
+    image: U8
+    levels: int
+    pad_px: int
+    flat: U8
+    offsets: npt.NDArray[np.int64]
+    sizes: npt.NDArray[np.int64]
+
+    @classmethod
+    def build(cls, image: U8, levels: int = 3, max_win_px: int = 21) -> ImagePyramid:
+        """The pyramid of ``image`` with ``levels`` levels above it, for windows up to
+        ``max_win_px``; fewer levels when the image gets too small for such a window (as OpenCV)."""
+        if image.ndim != 2 or image.dtype != np.uint8:
+            raise EstimationError(f"LK tracking needs an 8-bit grey image; got {image.dtype} {image.shape}")
+        pad = max_win_px + 2
+        lvls = [image]
+        while len(lvls) <= levels:
+            h, w = lvls[-1].shape
+            if (w + 1) // 2 <= max_win_px or (h + 1) // 2 <= max_win_px:
+                break
+            lvls.append(np.asarray(cv2.pyrDown(lvls[-1]), dtype=np.uint8))
+        sizes = np.array([(lv.shape[1], lv.shape[0]) for lv in lvls], np.int64)
+        lengths = (sizes[:, 0] + 2 * pad) * (sizes[:, 1] + 2 * pad)
+        offsets = np.concatenate(([0], np.cumsum(lengths)[:-1])).astype(np.int64)
+        flat = np.empty(int(lengths.sum()), np.uint8)
+        for lv, off, n, (w, h) in zip(lvls, offsets, lengths, sizes, strict=True):
+            dst = flat[off : off + n].reshape(h + 2 * pad, w + 2 * pad)
+            cv2.copyMakeBorder(lv, pad, pad, pad, pad, cv2.BORDER_REFLECT_101, dst=dst)
+        return cls(image, len(lvls) - 1, pad, flat, offsets, sizes)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        h, w = self.image.shape
+        return h, w
+
+
+class PyramidCache:
+    """The pyramids of the last few images, found by the image object itself, so that an image
+    tracked from, tracked into and matched in stereo has its pyramid built once. Images are taken
+    as not changing after they are first seen (a frame's arrays are not reused in place)."""
+
+    def __init__(self, levels: int, max_win_px: int, size: int = 6) -> None:
+        self.levels, self.max_win_px, self.size = levels, max_win_px, size
+        self._pyramids: OrderedDict[int, ImagePyramid] = OrderedDict()
+
+    def __call__(self, image: U8 | ImagePyramid) -> ImagePyramid:
+        if isinstance(image, ImagePyramid):
+            return image
+        key = id(image)
+        pyr = self._pyramids.get(key)
+        if pyr is not None and pyr.image is image:  # (the pyramid holds the image: its id stays its own)
+            self._pyramids.move_to_end(key)
+            return pyr
+        pyr = ImagePyramid.build(image, self.levels, self.max_win_px)
+        self._pyramids[key] = pyr
+        while len(self._pyramids) > self.size:
+            self._pyramids.popitem(last=False)
+        return pyr
+
+
+def pyramid_of(image: U8 | ImagePyramid, levels: int, win_px: int) -> ImagePyramid:
+    """``image``'s pyramid with at least ``levels`` levels (or as many as the image allows) for
+    windows of ``win_px``: ``image`` itself when it is such a pyramid, else built."""
+    if isinstance(image, ImagePyramid):
+        w, h = image.sizes[-1]
+        smallest = (w + 1) // 2 <= win_px or (h + 1) // 2 <= win_px  # no level above it would do
+        if image.pad_px >= win_px + 2 and (image.levels >= levels or smallest):
+            return image
+        image = image.image
+    return ImagePyramid.build(image, levels, win_px)
+
+
+def lk_track(
+    prev: ImagePyramid,
+    cur: ImagePyramid,
+    pts: F32,
+    start: F32 | None = None,
+    levels: int = 3,
+    win_px: int = 21,
+    max_iters: int = 20,
+    eps_px: float = 0.03,
+) -> tuple[F32, npt.NDArray[np.bool_]]:
+    """Track ``pts`` (N, 2) from ``prev`` into ``cur`` with an LK window of ``win_px`` (odd) over
+    ``levels`` pyramid levels above the image, starting at ``start`` (None: where they are).
+
+    Returns:
+        ``(pts_cur, ok)``: (N, 2) float32 positions and (N,) bool (False: the window left the image
+        or was too flat to track).
+    """
+    if prev.shape != cur.shape:
+        raise EstimationError(f"LK tracking between images of different sizes: {prev.shape} and {cur.shape}")
+    if win_px + 2 > min(prev.pad_px, cur.pad_px) or win_px < 3:
+        raise EstimationError(
+            f"LK window {win_px} px does not fit the pyramids (built for windows up to "
+            f"{min(prev.pad_px, cur.pad_px) - 2} px); build them with a larger max_win_px"
+        )
+    p0 = np.ascontiguousarray(pts, dtype=np.float32).reshape(-1, 2)
+    p1 = np.array(p0 if start is None else start, dtype=np.float32, copy=True).reshape(-1, 2)
+    ok = np.empty(len(p0), dtype=np.bool_)
+    if len(p0):
+        n_levels = 1 + min(levels, prev.levels, cur.levels, _levels_for(prev.sizes, win_px))
+        _lk_kernel.tracker(win_px)(
+            prev.flat,
+            prev.offsets,
+            prev.pad_px,
+            cur.flat,
+            cur.offsets,
+            cur.pad_px,
+            prev.sizes,
+            p0,
+            p1,
+            ok,
+            n_levels,
+            max_iters,
+            eps_px,
+            MIN_EIG,
+        )
+    return p1, ok
+
+
+def _levels_for(sizes: npt.NDArray[np.int64], win_px: int) -> int:
+    """The levels above 0 whose images are larger than the window (OpenCV stops below that)."""
+    n = 0
+    while n + 1 < len(sizes) and sizes[n + 1, 0] > win_px and sizes[n + 1, 1] > win_px:
+        n += 1
+    return n
