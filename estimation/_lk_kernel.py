@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numba
@@ -34,7 +35,7 @@ def _copy_block(img: Any, off: int, stride: int, rows: int, cols: int, buf: Any,
 
 
 @functools.cache
-def tracker(win: int) -> Any:
+def tracker(win: int) -> Callable[..., None]:
     """The kernel for windows of ``win`` pixels (a compile-time constant: the window loops then
     compile to straight vector code, 2-3x faster than with the size as an argument)."""
     s = (win + 10) // 8 * 8  # row stride of the window buffers: win + 3 columns, a multiple of 8
