@@ -6,7 +6,7 @@ of the gradient matrix over ``2 * window area`` in units of 2**20), the same sto
 below ``eps_px``; half a step back when two steps cancel), the same bounds (a window may reach
 ``win`` pixels into the border: the image there is reflected, its derivatives are zero). It differs
 in the arithmetic (float32 instead of 14-bit fixed point; positions agree to ~1e-4 px) and in its
-memory layout: every window is first copied into a small buffer with a fixed row stride, so that
+memory layout: every window is first copied (as float32) into a buffer with a fixed row stride, so that
 each inner loop runs over one contiguous range and compiles to vector code.
 """
 
@@ -31,7 +31,7 @@ def _copy_block(img: Any, off: int, stride: int, rows: int, cols: int, buf: Any,
     for i in range(rows):
         r = off + i * stride
         for j in range(cols):
-            buf[i * s + j] = img[r + j]
+            buf[i * s + j] = np.float32(img[r + j])
 
 
 @functools.cache
@@ -68,7 +68,7 @@ def tracker(win: int) -> Callable[..., None]:
         """
         n = p0.shape[0]
         half = np.float32((win - 1) * 0.5)
-        block = np.zeros(s * (win + 4), np.uint8)
+        block = np.zeros(s * (win + 4), np.float32)  # a window's pixels, as float32
         gxg = np.zeros(s * (win + 2), np.float32)
         gyg = np.zeros(s * (win + 2), np.float32)
         t_i = np.zeros(m, np.float32)
@@ -108,14 +108,14 @@ def tracker(win: int) -> Callable[..., None]:
                 _copy_block(i_flat, i_base + (iy0 - 1) * i_stride + ix0 - 1, i_stride, win + 3, win + 3, block, s)
                 # ... Scharr derivatives on the integer grid (zero outside the image) ...
                 for q in range(s * (win + 1)):
-                    c00 = np.float32(block[q])
-                    c01 = np.float32(block[q + 1])
-                    c02 = np.float32(block[q + 2])
-                    c10 = np.float32(block[q + s])
-                    c12 = np.float32(block[q + s + 2])
-                    c20 = np.float32(block[q + 2 * s])
-                    c21 = np.float32(block[q + 2 * s + 1])
-                    c22 = np.float32(block[q + 2 * s + 2])
+                    c00 = block[q]
+                    c01 = block[q + 1]
+                    c02 = block[q + 2]
+                    c10 = block[q + s]
+                    c12 = block[q + s + 2]
+                    c20 = block[q + 2 * s]
+                    c21 = block[q + 2 * s + 1]
+                    c22 = block[q + 2 * s + 2]
                     gxg[q] = three * (c02 - c00 + c22 - c20) + ten * (c12 - c10)
                     gyg[q] = three * (c20 - c00 + c22 - c02) + ten * (c21 - c01)
                 if ix0 < 0 or iy0 < 0 or ix0 + win >= cols or iy0 + win >= rows:
@@ -136,12 +136,7 @@ def tracker(win: int) -> Callable[..., None]:
                 a22 = np.float32(0.0)
                 for q in range(m):
                     c = q + s + 1
-                    t_i[q] = (
-                        w00 * np.float32(block[c])
-                        + w01 * np.float32(block[c + 1])
-                        + w10 * np.float32(block[c + s])
-                        + w11 * np.float32(block[c + s + 1])
-                    )
+                    t_i[q] = w00 * block[c] + w01 * block[c + 1] + w10 * block[c + s] + w11 * block[c + s + 1]
                     gx = (w00 * gxg[q] + w01 * gxg[q + 1] + w10 * gxg[q + s] + w11 * gxg[q + s + 1]) * colmask[q]
                     gy = (w00 * gyg[q] + w01 * gyg[q + 1] + w10 * gyg[q + s] + w11 * gyg[q + s + 1]) * colmask[q]
                     t_x[q] = gx
@@ -180,12 +175,7 @@ def tracker(win: int) -> Callable[..., None]:
                     b1 = np.float32(0.0)
                     b2 = np.float32(0.0)
                     for q in range(m):
-                        d = (
-                            v00 * np.float32(block[q])
-                            + v01 * np.float32(block[q + 1])
-                            + v10 * np.float32(block[q + s])
-                            + v11 * np.float32(block[q + s + 1])
-                        ) - t_i[q]
+                        d = (v00 * block[q] + v01 * block[q + 1] + v10 * block[q + s] + v11 * block[q + s + 1]) - t_i[q]
                         b1 += d * t_x[q]
                         b2 += d * t_y[q]
                     ddx = (a12 * b2 - a22 * b1) * inv_det

@@ -61,14 +61,16 @@ class ImagePyramid:
             if (w + 1) // 2 <= max_win_px or (h + 1) // 2 <= max_win_px:
                 break
             lvls.append(np.asarray(cv2.pyrDown(lvls[-1]), dtype=np.uint8))
-        sizes = np.array([(lv.shape[1], lv.shape[0]) for lv in lvls], np.int64)
-        lengths = (sizes[:, 0] + 2 * pad) * (sizes[:, 1] + 2 * pad)
-        offsets = np.concatenate(([0], np.cumsum(lengths)[:-1])).astype(np.int64)
-        flat = np.empty(int(lengths.sum()), np.uint8)
-        for lv, off, n, (w, h) in zip(lvls, offsets, lengths, sizes, strict=True):
-            dst = flat[off : off + n].reshape(h + 2 * pad, w + 2 * pad)
+        dims = [(lv.shape[1], lv.shape[0]) for lv in lvls]
+        offsets = [0]
+        for w, h in dims:
+            offsets.append(offsets[-1] + (w + 2 * pad) * (h + 2 * pad))
+        flat = np.empty(offsets[-1], np.uint8)
+        for lv, off, (w, h) in zip(lvls, offsets, dims, strict=False):
+            dst = flat[off : off + (w + 2 * pad) * (h + 2 * pad)].reshape(h + 2 * pad, w + 2 * pad)
             cv2.copyMakeBorder(lv, pad, pad, pad, pad, cv2.BORDER_REFLECT_101, dst=dst)
-        return cls(image, len(lvls) - 1, pad, flat, offsets, sizes)
+        sizes, offsets_a = np.array(dims, np.int64), np.array(offsets[:-1], np.int64)
+        return cls(image, len(lvls) - 1, pad, flat, offsets_a, sizes)
 
     @property
     def shape(self) -> tuple[int, int]:
