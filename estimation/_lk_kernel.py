@@ -34,6 +34,13 @@ def _copy_block(img: Any, off: int, stride: int, rows: int, cols: int, buf: Any,
             buf[i * s + j] = np.float32(img[r + j])
 
 
+@numba.njit(cache=True, fastmath=True, nogil=True, inline="always")
+def _bilinear_weights(a: Any, b: Any) -> tuple[Any, Any, Any, Any]:  # pragma: no cover - compiled
+    """Bilinear weights of the pixels (0, 0), (1, 0), (0, 1), (1, 1) for a point ``a``, ``b`` (0..1) into the cell."""
+    one = np.float32(1.0)
+    return (one - a) * (one - b), a * (one - b), (one - a) * b, a * b
+
+
 @functools.cache
 def tracker(win: int) -> Callable[..., None]:
     """The kernel for windows of ``win`` pixels (a compile-time constant: the window loops then
@@ -78,7 +85,6 @@ def tracker(win: int) -> Callable[..., None]:
         for q in range(m):
             if q % s < win:
                 colmask[q] = 1.0
-        one = np.float32(1.0)
         three = np.float32(3.0)
         ten = np.float32(10.0)
         eps2 = eps_px * eps_px
@@ -125,12 +131,7 @@ def tracker(win: int) -> Callable[..., None]:
                                 gxg[gi * s + gj] = 0.0
                                 gyg[gi * s + gj] = 0.0
                 # ... all three interpolated at the window's sub-pixel position
-                a = np.float32(px - ix0)
-                b = np.float32(py - iy0)
-                w00 = (one - a) * (one - b)
-                w01 = a * (one - b)
-                w10 = (one - a) * b
-                w11 = a * b
+                w00, w01, w10, w11 = _bilinear_weights(np.float32(px - ix0), np.float32(py - iy0))
                 a11 = np.float32(0.0)
                 a12 = np.float32(0.0)
                 a22 = np.float32(0.0)
@@ -166,12 +167,7 @@ def tracker(win: int) -> Callable[..., None]:
                             status[k] = False
                         break
                     _copy_block(j_flat, j_base + jy0 * j_stride + jx0, j_stride, win + 1, win + 1, block, s)
-                    a = np.float32(nx - jx0)
-                    b = np.float32(ny - jy0)
-                    v00 = (one - a) * (one - b)
-                    v01 = a * (one - b)
-                    v10 = (one - a) * b
-                    v11 = a * b
+                    v00, v01, v10, v11 = _bilinear_weights(np.float32(nx - jx0), np.float32(ny - jy0))
                     b1 = np.float32(0.0)
                     b2 = np.float32(0.0)
                     for q in range(m):
