@@ -2,7 +2,7 @@
 
 Everything here works on 8-bit grayscale images (``H x W`` uint8) and returns keypoint
 positions as ``float32`` arrays of shape (N, 2) in pixels (x right, y down), which is what
-``cv2.calcOpticalFlowPyrLK`` and ``cv2.solvePnPRansac`` take without copies.
+the LK tracker (``estimation.lk``) and ``cv2.solvePnPRansac`` take without copies.
 
 * :class:`GridDetector` spreads FAST corners over the image: the image is cut into cells
   and only the strongest few corners of each cell are kept, so a textured corner of the
