@@ -63,6 +63,7 @@ import cv2
 import numpy as np
 
 from estimation.frames import FramePreparer
+from estimation.lk import ImagePyramid, lk_track
 from estimation.odometry import VisualOdometry
 from estimation.p3p import pnp_ransac
 from estimation.vo_options import (
@@ -127,6 +128,10 @@ def warm_up(method: Method | str) -> list[FramePose]:
         # stereo: a point seen 12 px further left in the right image is 2.08 m away (0.1 m baseline)
         right = np.ascontiguousarray(texture[4 : 4 + h, 2 * i + 12 : 2 * i + 12 + w]) if m is Method.STEREO else None
         poses.append(vo.process(i * 33_333_333, gray, right, None if m is Method.STEREO else depth))
+    # The LK kernel is compiled once per window size: the default window is 9-11 px at any
+    # focal length (VoOptions.for_camera), these frames use 9.
+    pyr = ImagePyramid.build(gray, 1, 11)
+    lk_track(pyr, pyr, np.full((1, 2), 50.0, np.float32), levels=1, win_px=11)
     if m is not Method.FLOW:
         # PnP RANSAC (every keyframe method's fallback) may not run on these frames: once here.
         X = np.c_[rng.uniform(-1.0, 1.0, (8, 2)), rng.uniform(1.5, 3.0, 8)]
