@@ -23,10 +23,12 @@ import numpy as np
 __all__ = ["tracker"]
 
 _FLT_EPSILON = 1.1920929e-07
+_FASTMATH = {"reassoc", "contract", "nsz", "arcp", "afn"}
+"""Fast-math without "nnan"/"ninf": the bounds checks must see a NaN or infinite position."""
 _EIG_SCALE = 1.0 / float(1 << 20)
 
 
-@numba.njit(cache=True, fastmath=True, nogil=True, inline="always")
+@numba.njit(cache=True, fastmath=_FASTMATH, nogil=True, inline="always")
 def _copy_block(img: Any, off: int, stride: int, rows: int, cols: int, buf: Any, s: int) -> None:  # pragma: no cover
     for i in range(rows):
         r = off + i * stride
@@ -34,7 +36,7 @@ def _copy_block(img: Any, off: int, stride: int, rows: int, cols: int, buf: Any,
             buf[i * s + j] = np.float32(img[r + j])
 
 
-@numba.njit(cache=True, fastmath=True, nogil=True, inline="always")
+@numba.njit(cache=True, fastmath=_FASTMATH, nogil=True, inline="always")
 def _bilinear_weights(a: Any, b: Any) -> tuple[Any, Any, Any, Any]:  # pragma: no cover - compiled
     """Bilinear weights of the pixels (0, 0), (1, 0), (0, 1), (1, 1) for a point ``a``, ``b`` (0..1) into the cell."""
     one = np.float32(1.0)
@@ -48,7 +50,7 @@ def tracker(win: int) -> Callable[..., None]:
     s = (win + 10) // 8 * 8  # row stride of the window buffers: win + 3 columns, a multiple of 8
     m = s * win  # a window buffer: win rows of stride s; columns >= win are masked out
 
-    @numba.njit(cache=True, fastmath=True, nogil=True)
+    @numba.njit(cache=True, fastmath=_FASTMATH, nogil=True)
     def lk_track(  # pragma: no cover - compiled
         i_flat: Any,
         i_offsets: Any,
@@ -104,12 +106,13 @@ def tracker(win: int) -> Callable[..., None]:
                 p1[k, 1] *= up
                 px = p0[k, 0] * scale - half
                 py = p0[k, 1] * scale - half
-                ix0 = int(math.floor(px))
-                iy0 = int(math.floor(py))
-                if ix0 < -win or ix0 >= cols or iy0 < -win or iy0 >= rows:
+                # (on the floats: floor(x) in [-win, cols) is x in [-win, cols); NaN fails it too)
+                if not (-win <= px < cols and -win <= py < rows):
                     if level == 0:
                         status[k] = False
                     continue
+                ix0 = int(math.floor(px))
+                iy0 = int(math.floor(py))
                 # the template: I's pixels around the window (one more on each side) ...
                 _copy_block(i_flat, i_base + (iy0 - 1) * i_stride + ix0 - 1, i_stride, win + 3, win + 3, block, s)
                 # ... Scharr derivatives on the integer grid (zero outside the image) ...
@@ -160,12 +163,12 @@ def tracker(win: int) -> Callable[..., None]:
                 pdx = np.float32(0.0)
                 pdy = np.float32(0.0)
                 for j in range(max_iters):
-                    jx0 = int(math.floor(nx))
-                    jy0 = int(math.floor(ny))
-                    if jx0 < -win or jx0 >= cols or jy0 < -win or jy0 >= rows:
+                    if not (-win <= nx < cols and -win <= ny < rows):
                         if level == 0:
                             status[k] = False
                         break
+                    jx0 = int(math.floor(nx))
+                    jy0 = int(math.floor(ny))
                     _copy_block(j_flat, j_base + jy0 * j_stride + jx0, j_stride, win + 1, win + 1, block, s)
                     v00, v01, v10, v11 = _bilinear_weights(np.float32(nx - jx0), np.float32(ny - jy0))
                     b1 = np.float32(0.0)

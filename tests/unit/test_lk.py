@@ -73,3 +73,22 @@ def test_pyramid_cache_builds_each_image_once_and_checks_the_window() -> None:
         lk_track(first, first, np.zeros((1, 2), np.float32), win_px=21)
     with pytest.raises(EstimationError, match="8-bit grey"):
         ImagePyramid.build(np.zeros((10, 10), np.float32))
+
+
+def test_non_finite_points_and_tiny_images_fail_cleanly() -> None:
+    """NaN or infinite positions and starts are not ok (and read nothing outside the image); an
+    image smaller than the window tracks nothing but does not fail."""
+    rng = np.random.default_rng(1)
+    img = cv2.GaussianBlur(rng.integers(0, 256, (120, 160)).astype(np.uint8), (0, 0), 1.5)
+    pyr = ImagePyramid.build(img, 3)
+    nan, inf = np.float32(np.nan), np.float32(np.inf)
+    pts = np.array([[nan, 50.0], [60.0, inf], [80.0, 60.0], [80.0, 60.0], [-inf, -inf]], np.float32)
+    start = pts.copy()
+    start[3] = (nan, nan)
+    p1, ok = lk_track(pyr, pyr, pts, start, 3, 11)
+    assert ok.tolist() == [False, False, True, False, False]
+    np.testing.assert_allclose(p1[2], [80.0, 60.0], atol=0.01)
+    tiny = ImagePyramid.build(np.full((6, 8), 90, np.uint8), 3)
+    assert tiny.levels == 0
+    p1, ok = lk_track(tiny, tiny, np.array([[3.0, 3.0]], np.float32), win_px=11)
+    assert not ok.any()
