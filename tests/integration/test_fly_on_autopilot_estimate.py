@@ -44,4 +44,8 @@ def test_a_hop_flown_on_the_autopilots_estimate_held_at_100_hz(tmp_path: Path) -
     assert len(t) > 50 and float(np.median(np.asarray(log["mocap_age_s"][sel]))) < 0.02
     repeated = np.all(np.diff(pos, axis=0) == 0.0, axis=1)
     assert 0.2 < float(np.mean(repeated)) < 0.8, float(np.mean(repeated))
-    assert float(np.max(np.abs(pos[:, 2] - 0.6))) < 0.1  # and it is where the vehicle holds
+    # and it is where the vehicle holds: the hold starts at the top of the firmware's own lift-off,
+    # which overshoots (0.07-0.09 m here, 0.10 on a loaded host), and settles onto 0.6 m
+    z_err_m = np.abs(pos[:, 2] - 0.6)
+    assert float(np.max(z_err_m)) < 0.2, float(np.max(z_err_m))
+    assert float(np.max(z_err_m[t >= t[-1] - 1.0])) < 0.03, z_err_m[t >= t[-1] - 1.0]
