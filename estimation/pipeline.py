@@ -105,8 +105,8 @@ logger = logging.getLogger(__name__)
 
 def warm_up(method: Method | str) -> list[FramePose]:
     """Run ``method`` on five synthetic 320x240 frames (a blurred random texture at 2 m, moving
-    2 px a frame) so that its compiled kernels (``estimation._kernels``) are loaded, or compiled
-    on the first run after an install (~8.5 s of CPU; ~0.4 s to load them otherwise), before
+    2 px a frame) so that its compiled kernels (``estimation._*kernel*``) are loaded, or compiled
+    on the first run after an install (~50 s of CPU here; ~2 s to load them otherwise), before
     live frames arrive. The frames have the types and layouts of real ones, so the kernels a
     real run calls need no new compilation afterwards. Blocks; returns the five poses (the
     first ``INIT``, the others estimated)."""
