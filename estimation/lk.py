@@ -140,6 +140,11 @@ def lk_track(
         )
     p0 = np.ascontiguousarray(pts, dtype=np.float32).reshape(-1, 2)
     p1 = np.array(p0 if start is None else start, dtype=np.float32, copy=True).reshape(-1, 2)
+    if p1.shape != p0.shape or levels < 0:
+        raise EstimationError(
+            f"LK tracking got {len(p0)} points with {len(p1)} start positions and {levels} levels; "
+            "give one start per point (or None) and levels >= 0"
+        )
     ok = np.empty(len(p0), dtype=np.bool_)
     if len(p0):
         n_levels = 1 + min(levels, prev.levels, cur.levels, _levels_for(prev.sizes, win_px))

@@ -71,6 +71,8 @@ def test_pyramid_cache_builds_each_image_once_and_checks_the_window() -> None:
     assert pyramid_of(first, 3, 21).pad_px == 23  # a larger window needs a wider border: built again
     with pytest.raises(EstimationError, match="does not fit the pyramids"):
         lk_track(first, first, np.zeros((1, 2), np.float32), win_px=21)
+    with pytest.raises(EstimationError, match="one start per point"):
+        lk_track(first, first, np.zeros((3, 2), np.float32), np.zeros((2, 2), np.float32), win_px=11)
     with pytest.raises(EstimationError, match="8-bit grey"):
         ImagePyramid.build(np.zeros((10, 10), np.float32))
 
