@@ -35,7 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench._host import pin_one_cpu  # noqa: E402
 from estimation import flow  # noqa: E402
-from estimation.lk import ImagePyramid, PyramidCache, lk_track  # noqa: E402
+from estimation.lk import EPS_PX, ImagePyramid, PyramidCache, lk_track  # noqa: E402
 from estimation.pipeline import run_vo  # noqa: E402
 from flightkit.datasets.registry import open_sequence  # noqa: E402
 
@@ -76,7 +76,7 @@ def record(name: str, method: str) -> tuple[list[Call], int, int]:
         levels: int,
         win_px: int,
         max_iters: int,
-        eps_px: float,
+        eps_px: float = EPS_PX,
     ) -> Any:
         built[0] = max(built[0], prev.levels, cur.levels)
         s = None if start is None else np.array(start, np.float32).reshape(-1, 2)

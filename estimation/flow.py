@@ -56,9 +56,6 @@ logger = logging.getLogger(__name__)
 F64 = npt.NDArray[np.float64]
 Image = npt.NDArray[np.uint8]
 
-_EPS_PX = 0.03
-"""LK stops iterating on a level when its step is shorter than this (OpenCV's usual 0.03)."""
-
 
 def track_klt(
     prev: Image | ImagePyramid,
@@ -98,7 +95,7 @@ def track_klt(
     prev_pyr = pyramid_of(prev, max(levels, back), win_px)
     cur_pyr = pyramid_of(cur, max(levels, back), win_px)
     p0 = np.ascontiguousarray(pts_prev, dtype=np.float32).reshape(-1, 2)
-    p1, ok = lk_track(prev_pyr, cur_pyr, p0, guess, levels, win_px, max_iters, _EPS_PX)
+    p1, ok = lk_track(prev_pyr, cur_pyr, p0, guess, levels, win_px, max_iters)
     if fb_max_px is None:
         return p1, ok
     check = ok
@@ -110,7 +107,7 @@ def track_klt(
     if len(sel) == 0:
         return p1, ok
     p0s = p0[sel]
-    p0b, st2 = lk_track(cur_pyr, prev_pyr, p1[sel], p0s, back, win_px, max_iters, _EPS_PX)
+    p0b, st2 = lk_track(cur_pyr, prev_pyr, p1[sel], p0s, back, win_px, max_iters)
     fb = np.einsum("ni,ni->n", p0b - p0s, p0b - p0s)
     ok[sel] = st2 & (fb < fb_max_px * fb_max_px)
     return p1, ok

@@ -19,13 +19,16 @@ import numpy.typing as npt
 from estimation import _lk_kernel
 from flightkit.errors import EstimationError
 
-__all__ = ["ImagePyramid", "PyramidCache", "lk_track", "pyramid_of"]
+__all__ = ["EPS_PX", "ImagePyramid", "PyramidCache", "lk_track", "pyramid_of"]
 
 U8 = npt.NDArray[np.uint8]
 F32 = npt.NDArray[np.float32]
 
 MIN_EIG = 1e-4
 """OpenCV's default ``minEigThreshold``: windows flatter than this are not tracked."""
+
+EPS_PX = 0.03
+"""LK stops iterating on a level when its step is shorter than this (OpenCV's usual 0.03)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -58,7 +61,7 @@ class ImagePyramid:
         lvls = [image]
         while len(lvls) <= levels:
             h, w = lvls[-1].shape
-            if (w + 1) // 2 <= max_win_px or (h + 1) // 2 <= max_win_px:
+            if not _level_above_fits(w, h, max_win_px):
                 break
             lvls.append(np.asarray(cv2.pyrDown(lvls[-1]), dtype=np.uint8))
         dims = [(lv.shape[1], lv.shape[0]) for lv in lvls]
@@ -107,8 +110,7 @@ def pyramid_of(image: U8 | ImagePyramid, levels: int, win_px: int) -> ImagePyram
     windows of ``win_px``: ``image`` itself when it is such a pyramid, else built."""
     if isinstance(image, ImagePyramid):
         w, h = image.sizes[-1]
-        smallest = (w + 1) // 2 <= win_px or (h + 1) // 2 <= win_px  # no level above it would do
-        if image.pad_px >= win_px + 2 and (image.levels >= levels or smallest):
+        if image.pad_px >= win_px + 2 and (image.levels >= levels or not _level_above_fits(w, h, win_px)):
             return image
         image = image.image
     return ImagePyramid.build(image, levels, win_px)
@@ -122,7 +124,7 @@ def lk_track(
     levels: int = 3,
     win_px: int = 21,
     max_iters: int = 20,
-    eps_px: float = 0.03,
+    eps_px: float = EPS_PX,
 ) -> tuple[F32, npt.NDArray[np.bool_]]:
     """Track ``pts`` (N, 2) from ``prev`` into ``cur`` with an LK window of ``win_px`` (odd) over
     ``levels`` pyramid levels above the image, starting at ``start`` (None: where they are).
@@ -167,9 +169,15 @@ def lk_track(
     return p1, ok
 
 
+def _level_above_fits(w: int, h: int, win_px: int) -> bool:
+    """Whether the pyramid level above a w x h one (``cv2.pyrDown``'s size) is larger than the
+    window: OpenCV builds no level below that."""
+    return (w + 1) // 2 > win_px and (h + 1) // 2 > win_px
+
+
 def _levels_for(sizes: npt.NDArray[np.int64], win_px: int) -> int:
-    """The levels above 0 whose images are larger than the window (OpenCV stops below that)."""
+    """The levels above 0 of ``sizes`` that a window of ``win_px`` can use."""
     n = 0
-    while n + 1 < len(sizes) and sizes[n + 1, 0] > win_px and sizes[n + 1, 1] > win_px:
+    while n + 1 < len(sizes) and _level_above_fits(int(sizes[n, 0]), int(sizes[n, 1]), win_px):
         n += 1
     return n
