@@ -78,6 +78,7 @@ def tracker(win: int) -> Callable[..., None]:
         n = p0.shape[0]
         half = np.float32((win - 1) * 0.5)
         block = np.zeros(s * (win + 4), np.float32)  # a window's pixels, as float32
+        inter = np.zeros(s * (win + 4), np.float32)  # I interpolated around the window
         gxg = np.zeros(s * (win + 2), np.float32)
         gyg = np.zeros(s * (win + 2), np.float32)
         t_i = np.zeros(m, np.float32)
@@ -115,39 +116,62 @@ def tracker(win: int) -> Callable[..., None]:
                 iy0 = int(math.floor(py))
                 # the template: I's pixels around the window (one more on each side) ...
                 _copy_block(i_flat, i_base + (iy0 - 1) * i_stride + ix0 - 1, i_stride, win + 3, win + 3, block, s)
-                # ... Scharr derivatives on the integer grid (zero outside the image) ...
-                for q in range(s * (win + 1)):
-                    c00 = block[q]
-                    c01 = block[q + 1]
-                    c02 = block[q + 2]
-                    c10 = block[q + s]
-                    c12 = block[q + s + 2]
-                    c20 = block[q + 2 * s]
-                    c21 = block[q + 2 * s + 1]
-                    c22 = block[q + 2 * s + 2]
-                    gxg[q] = three * (c02 - c00 + c22 - c20) + ten * (c12 - c10)
-                    gyg[q] = three * (c20 - c00 + c22 - c02) + ten * (c21 - c01)
+                w00, w01, w10, w11 = _bilinear_weights(np.float32(px - ix0), np.float32(py - iy0))
+                a11 = np.float32(0.0)
+                a12 = np.float32(0.0)
+                a22 = np.float32(0.0)
                 if ix0 < 0 or iy0 < 0 or ix0 + win >= cols or iy0 + win >= rows:
+                    # At the border: Scharr derivatives on the integer grid (zero outside the
+                    # image), then all three interpolated at the window's sub-pixel position.
+                    for q in range(s * (win + 1)):
+                        c00 = block[q]
+                        c01 = block[q + 1]
+                        c02 = block[q + 2]
+                        c10 = block[q + s]
+                        c12 = block[q + s + 2]
+                        c20 = block[q + 2 * s]
+                        c21 = block[q + 2 * s + 1]
+                        c22 = block[q + 2 * s + 2]
+                        gxg[q] = three * (c02 - c00 + c22 - c20) + ten * (c12 - c10)
+                        gyg[q] = three * (c20 - c00 + c22 - c02) + ten * (c21 - c01)
                     for gi in range(win + 1):
                         for gj in range(win + 1):
                             if not (0 <= iy0 + gi < rows and 0 <= ix0 + gj < cols):
                                 gxg[gi * s + gj] = 0.0
                                 gyg[gi * s + gj] = 0.0
-                # ... all three interpolated at the window's sub-pixel position
-                w00, w01, w10, w11 = _bilinear_weights(np.float32(px - ix0), np.float32(py - iy0))
-                a11 = np.float32(0.0)
-                a12 = np.float32(0.0)
-                a22 = np.float32(0.0)
-                for q in range(m):
-                    c = q + s + 1
-                    t_i[q] = w00 * block[c] + w01 * block[c + 1] + w10 * block[c + s] + w11 * block[c + s + 1]
-                    gx = (w00 * gxg[q] + w01 * gxg[q + 1] + w10 * gxg[q + s] + w11 * gxg[q + s + 1]) * colmask[q]
-                    gy = (w00 * gyg[q] + w01 * gyg[q + 1] + w10 * gyg[q + s] + w11 * gyg[q + s + 1]) * colmask[q]
-                    t_x[q] = gx
-                    t_y[q] = gy
-                    a11 += gx * gx
-                    a12 += gx * gy
-                    a22 += gy * gy
+                    for q in range(m):
+                        c = q + s + 1
+                        t_i[q] = w00 * block[c] + w01 * block[c + 1] + w10 * block[c + s] + w11 * block[c + s + 1]
+                        gx = (w00 * gxg[q] + w01 * gxg[q + 1] + w10 * gxg[q + s] + w11 * gxg[q + s + 1]) * colmask[q]
+                        gy = (w00 * gyg[q] + w01 * gyg[q + 1] + w10 * gyg[q + s] + w11 * gyg[q + s + 1]) * colmask[q]
+                        t_x[q] = gx
+                        t_y[q] = gy
+                        a11 += gx * gx
+                        a12 += gx * gy
+                        a22 += gy * gy
+                else:
+                    # Inside: I interpolated one pixel around the window, then its Scharr
+                    # derivatives (both filters are linear and shift-invariant: the same as
+                    # interpolating the grid's derivatives, with a third of the interpolation).
+                    for q in range(s * (win + 2)):
+                        inter[q] = w00 * block[q] + w01 * block[q + 1] + w10 * block[q + s] + w11 * block[q + s + 1]
+                    for q in range(m):
+                        c00 = inter[q]
+                        c01 = inter[q + 1]
+                        c02 = inter[q + 2]
+                        c10 = inter[q + s]
+                        c12 = inter[q + s + 2]
+                        c20 = inter[q + 2 * s]
+                        c21 = inter[q + 2 * s + 1]
+                        c22 = inter[q + 2 * s + 2]
+                        gx = (three * (c02 - c00 + c22 - c20) + ten * (c12 - c10)) * colmask[q]
+                        gy = (three * (c20 - c00 + c22 - c02) + ten * (c21 - c01)) * colmask[q]
+                        t_i[q] = inter[q + s + 1]
+                        t_x[q] = gx
+                        t_y[q] = gy
+                        a11 += gx * gx
+                        a12 += gx * gy
+                        a22 += gy * gy
                 a11 *= _EIG_SCALE
                 a12 *= _EIG_SCALE
                 a22 *= _EIG_SCALE

@@ -6,8 +6,9 @@ Each takes the front end's tracks of the keyframe's 3D points (:class:`Tracks`, 
 * :class:`PnpEstimator` (``stereo``, ``rgbd-pnp``): PnP + RANSAC on the keyframe points (SQPnP
   without RANSAC when the prediction explains the tracks), then the depth polish;
 * :class:`EssentialEstimator` (``rgbd-essential``): the essential matrix keyframe to current
-  (from the prediction or the 5-point RANSAC), its metric scale and cheirality from depth,
-  checked on the keyframe points' reprojection; PnP when the parallax is too small;
+  (from the prediction moved onto the tracks, or the 5-point RANSAC), its metric scale and
+  cheirality from depth, checked on the keyframe points' reprojection; PnP when the parallax is
+  too small;
 * :class:`KabschEstimator` (``rgbd-kabsch``): 3D-3D Kabsch on the depth of both frames
   (from the prediction or a vectorised RANSAC), then the polish.
 
@@ -48,6 +49,9 @@ U8 = npt.NDArray[np.uint8]
 
 _LEAST_SQUARES_PX = 1e9
 """A Huber threshold no reprojection residual reaches: plain least squares."""
+
+_PRIOR_STEPS = 3
+"""Gauss-Newton steps that move a predicted motion onto the tracks before an epipolar prior check."""
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -124,13 +128,21 @@ class EssentialEstimator:
         m_prior = None
         if parallax >= eo.min_parallax_px:
             if eo.prior_gate_px > 0 and t.has_prior:
-                # The constant-velocity prediction usually explains the tracks: then no RANSAC.
+                # The constant-velocity prediction usually explains the tracks: then no RANSAC. A
+                # prediction (not a measured motion) is first pulled onto the keyframe points'
+                # reprojection, robustly at the gate: when the turn rate changes it is off by more
+                # than the gate on many tracks (docs/estimation-log.md, twenty-second pass).
+                start = (
+                    guess
+                    if t.guess_inliers is not None
+                    else refine_pose(guess, X_kf, und_cur, geo.K, huber_px=eo.prior_gate_px, iterations=_PRIOR_STEPS)
+                )
                 m_prior = essential_from_prior(
                     und_kf,
                     und_cur,
                     geo.K,
                     X_kf,
-                    guess,
+                    start,
                     gate_px=eo.prior_gate_px,
                     threshold_px=eo.threshold_px,
                     min_fraction=t.prior_fraction(eo.prior_min_fraction),
