@@ -7,15 +7,16 @@ depths and points in metres.
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
 import numpy.typing as npt
+from numba import njit
 
 from estimation import _kernels
 from estimation.lk import PyramidCache
-from estimation.rolling_shutter import CameraRate, RollingShutter
+from estimation.rolling_shutter import CameraRate, RollingShutter, move_pixels
 from estimation.stereo import StereoRig, row_disparity, sparse_disparity, triangulate
 from estimation.vo_options import VoOptions
 from flightkit.errors import EstimationError
@@ -104,13 +105,19 @@ class CameraGeometry:
             else None
         )
         self.depth_intr = depth_intrinsics
+        di = depth_intrinsics
+        own = di is not None and (di.fx != intrinsics.fx or di.cx != intrinsics.cx or di.width != intrinsics.width)
+        self._depth_pinhole = (
+            (True, di.fx, di.fy, di.cx, di.cy) if di is not None and own else (False, 1.0, 1.0, 0.0, 0.0)
+        )
+        """Whether the depth image has a pinhole of its own (pixels are mapped into it), and its fx, fy, cx, cy."""
         self.use_depth_images = use_depth_images
         self.disparity_offset_px = 0.0
         """Added to every measured disparity before triangulation (``estimation.stereo_offset``)."""
         # A virtual baseline that turns depth-image depth into a disparity for the pose polish;
         # it sets the depth residuals' weight against the reprojection (depth_weight_baseline_m).
-        self.virtual_baseline_m = float(baseline_m) if baseline_m else depth_weight_baseline_m(
-            intrinsics.fx, depth_registered, options
+        self.virtual_baseline_m = (
+            float(baseline_m) if baseline_m else depth_weight_baseline_m(intrinsics.fx, depth_registered, options)
         )
         self.klt_win = options.klt_win_px or 11
         self.klt_levels = 3 if options.klt_levels is None else options.klt_levels
@@ -150,18 +157,35 @@ class CameraGeometry:
         """3D points (camera frame at the image's stamp) of image pixels from the depth image, and
         which have depth; ``rate``: the camera's at that image (a rolling shutter); ``und_lens``:
         :meth:`undistort` of ``px`` without a rate, when the caller has it (not recomputed)."""
-        z = self.depth_at(depth_m, px)
-        ok = np.isfinite(z)
         und = self.undistort(px) if und_lens is None else und_lens
-        if self.shutter is None or rate is None or not len(px):
+        sh = self.shutter
+        if sh is None or rate is None or not len(px):
+            z = self.depth_at(depth_m, px)
+            ok = np.isfinite(z)
             return self.backproject(und, np.where(ok, z, 1.0)), ok
         # The depth image is read where the point is at the stamp: taken as a global-shutter image
         # at the colour stamp, which measured better than giving it the colour rows' timing
-        # (docs/estimation-log.md).
-        und_mid = self.shutter.pixels(und, px[:, 1], rate, z)
-        z = self.depth_at(depth_m, (px + (und_mid - und)).astype(np.float32))
-        ok = np.isfinite(z)
-        return self.backproject(und_mid, np.where(ok, z, 1.0)), ok
+        # (docs/estimation-log.md). Both lookups, the move and the back-projection: one compiled call.
+        i = self.intr
+        X: F64
+        ok_s: Bool
+        X, ok_s = _depth_points_at_stamp(
+            np.ascontiguousarray(depth_m, dtype=np.float32),
+            np.ascontiguousarray(px, dtype=np.float32),
+            np.ascontiguousarray(und, dtype=np.float64),
+            sh.mid_row_px,
+            sh.row_s,
+            rate.omega_rad_s,
+            rate.velocity_m_s,
+            i.fx,
+            i.fy,
+            i.cx,
+            i.cy,
+            *self._depth_pinhole,
+            float(self.opts.min_depth_m),
+            float(self.opts.max_depth_m),
+        )
+        return X, ok_s
 
     def backproject(self, px_undist: F64, z: F64) -> F64:
         """3D points (camera frame) of undistorted pixels at depths ``z``."""
@@ -172,22 +196,20 @@ class CameraGeometry:
         return X
 
     def depth_at(self, depth_m: F32, px: F32) -> F64:
-        """Depth (metres, NaN where unknown or at a depth edge) at image pixels."""
+        """Depth (metres, NaN where unknown or at a depth edge) at image pixels: the nearest pixel
+        with depth whose 4 neighbours agree with it (no depth edge), in [min_depth_m, max_depth_m]
+        (one compiled loop, ``estimation._kernels.depth_at``)."""
         if len(px) == 0:
             return np.empty(0)
-        uv = np.asarray(px, dtype=np.float64)
-        di = self.depth_intr
-        if di is not None and (di.fx != self.intr.fx or di.cx != self.intr.cx or di.width != self.intr.width):
-            uv = np.c_[
-                (uv[:, 0] - self.intr.cx) * di.fx / self.intr.fx + di.cx,
-                (uv[:, 1] - self.intr.cy) * di.fy / self.intr.fy + di.cy,
-            ]
-        # The nearest pixel with depth whose 4 neighbours agree with it (no depth edge), in
-        # [min_depth_m, max_depth_m]; one compiled loop (estimation._kernels.depth_at).
-        z: F64 = _kernels.depth_at(
+        i = self.intr
+        z: F64 = _depth_at_px(
             np.ascontiguousarray(depth_m, dtype=np.float32),
-            np.ascontiguousarray(uv[:, 0]),
-            np.ascontiguousarray(uv[:, 1]),
+            np.ascontiguousarray(px),
+            i.fx,
+            i.fy,
+            i.cx,
+            i.cy,
+            *self._depth_pinhole,
             float(self.opts.min_depth_m),
             float(self.opts.max_depth_m),
         )
@@ -345,3 +367,80 @@ class CameraGeometry:
         uv[:, 0] = u
         uv[:, 1] = v
         return uv, inside
+
+
+@njit(cache=True)
+def _depth_at_px(
+    depth: Any,
+    px: Any,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    remap: bool,
+    dfx: float,
+    dfy: float,
+    dcx: float,
+    dcy: float,
+    min_m: float,
+    max_m: float,
+) -> F64:
+    """:meth:`CameraGeometry.depth_at` of (N, 2) pixels: as float64, mapped into the depth image's
+    own pinhole ``dfx, dfy, dcx, dcy`` when ``remap`` (``(u - cx) * dfx / fx + dcx``)."""
+    n = px.shape[0]
+    u = np.empty(n)
+    v = np.empty(n)
+    for k in range(n):
+        x = np.float64(px[k, 0])
+        y = np.float64(px[k, 1])
+        u[k] = (x - cx) * dfx / fx + dcx if remap else x
+        v[k] = (y - cy) * dfy / fy + dcy if remap else y
+    z: F64 = _kernels.depth_at(depth, u, v, min_m, max_m)
+    return z
+
+
+@njit(cache=True)
+def _depth_points_at_stamp(
+    depth: Any,
+    px: Any,
+    und: Any,
+    mid_row: float,
+    row_s: float,
+    w: Any,
+    v: Any,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    remap: bool,
+    dfx: float,
+    dfy: float,
+    dcx: float,
+    dcy: float,
+    min_m: float,
+    max_m: float,
+) -> tuple[F64, Bool]:
+    """:meth:`CameraGeometry.depth_points` with a rolling shutter in one compiled call, bit for bit
+    its numpy steps: the depth at the pixels ``px`` (float32), the undistorted pixels ``und`` moved
+    to the stamp with it (``move_pixels``), the depth again where the point is at the stamp, the
+    back-projection (depth 1 where there is none) and which have depth."""
+    n = px.shape[0]
+    z = _depth_at_px(depth, px, fx, fy, cx, cy, remap, dfx, dfy, dcx, dcy, min_m, max_m)
+    rows = np.empty(n)
+    for k in range(n):
+        rows[k] = np.float64(px[k, 1])
+    und_mid = move_pixels(und, rows, mid_row, row_s, z, True, w, v, fx, fy, cx, cy)
+    moved = np.empty((n, 2), np.float32)
+    for k in range(n):
+        moved[k, 0] = np.float32(np.float64(px[k, 0]) + (und_mid[k, 0] - und[k, 0]))
+        moved[k, 1] = np.float32(np.float64(px[k, 1]) + (und_mid[k, 1] - und[k, 1]))
+    z = _depth_at_px(depth, moved, fx, fy, cx, cy, remap, dfx, dfy, dcx, dcy, min_m, max_m)
+    X = np.empty((n, 3))
+    ok = np.empty(n, np.bool_)
+    for k in range(n):
+        ok[k] = np.isfinite(z[k])
+        zk = z[k] if ok[k] else 1.0
+        X[k, 0] = (und_mid[k, 0] - cx) / fx * zk
+        X[k, 1] = (und_mid[k, 1] - cy) / fy * zk
+        X[k, 2] = zk
+    return X, ok

@@ -19,7 +19,7 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
-__all__ = ["CameraRate", "RollingShutter"]
+__all__ = ["CameraRate", "RollingShutter", "move_pixels"]
 
 F64 = npt.NDArray[np.float64]
 Rows = npt.NDArray[np.floating[Any]]
@@ -53,7 +53,7 @@ _FAR_M = 1e9
 """The depth given to a point whose depth is unknown: its velocity part vanishes."""
 
 _NO_DEPTH = np.empty(0)
-"""``_move_pixels``' depths when none are given (every point infinitely far)."""
+"""``move_pixels``' depths when none are given (every point infinitely far)."""
 
 
 class RollingShutter:
@@ -103,7 +103,7 @@ class RollingShutter:
         if n == 0:
             return np.asarray(und_px, dtype=np.float64)
         # The rows' times (row_dt_s) and the depths' stand-ins are computed in the compiled loop.
-        return _move_pixels(
+        return move_pixels(
             np.ascontiguousarray(und_px, dtype=np.float64),
             np.ascontiguousarray(rows_px, dtype=np.float64),
             self.mid_row_px,
@@ -120,7 +120,7 @@ class RollingShutter:
 
 
 @njit(cache=True)
-def _move_pixels(
+def move_pixels(
     und: Any,
     rows: Any,
     mid_row: float,

@@ -219,6 +219,47 @@ def test_depth_points_take_the_callers_lens_undistortion_bit_for_bit(readout_s: 
         np.testing.assert_array_equal(X2, X)
 
 
+@pytest.mark.parametrize("own_depth_camera", [False, True])
+def test_depth_points_with_a_rate_equal_the_numpy_steps_bit_for_bit(own_depth_camera: bool) -> None:
+    """With a rolling shutter, ``CameraGeometry.depth_points`` (one compiled call) is its numpy
+    steps: the depth at the pixels, the pixels moved to the stamp with it, the depth again there
+    (in the depth camera's pixels when it has its own intrinsics), the back-projection."""
+    from estimation import _kernels
+    from estimation.camera_geometry import CameraGeometry
+
+    intr = CameraIntrinsics(FX, FX, CX, CY, W, H, readout_s=READOUT_S)
+    d_intr = CameraIntrinsics(FX * 1.02, FX * 1.01, CX + 3.0, CY - 2.0, W, H) if own_depth_camera else intr
+    geo = CameraGeometry(intr, None, d_intr, VoOptions().for_camera(FX, W), use_depth_images=True)
+    assert geo.shutter is not None
+    rng = np.random.default_rng(21)
+    depth = rng.uniform(0.5, 3.0, (H // 20, W // 20)).astype(np.float32).repeat(20, axis=0).repeat(20, axis=1)
+    depth[rng.uniform(size=depth.shape) < 0.02] = np.nan  # holes and depth edges
+    px = np.c_[rng.uniform(-2, W + 2, 400), rng.uniform(-2, H + 2, 400)].astype(np.float32)
+    und = geo.undistort(px)
+    rate = CameraRate(np.array([0.9, -1.1, 0.4]), np.array([0.6, 0.3, -0.7]))
+
+    def depth_at(p: npt.NDArray[np.float32]) -> F64:
+        # the lookup in the depth image's own pixels, written out
+        uv = p.astype(np.float64)
+        if own_depth_camera:
+            uv = np.c_[(uv[:, 0] - CX) * d_intr.fx / FX + d_intr.cx, (uv[:, 1] - CY) * d_intr.fy / FX + d_intr.cy]
+        lo, hi = geo.opts.min_depth_m, geo.opts.max_depth_m
+        return np.asarray(_kernels.depth_at(depth, uv[:, 0].copy(), uv[:, 1].copy(), lo, hi))
+
+    z = depth_at(px)
+    np.testing.assert_array_equal(geo.depth_at(depth, px), z)
+    und_mid = geo.shutter.pixels(und, px[:, 1], rate, z)
+    z_mid = depth_at((px + (und_mid - und)).astype(np.float32))
+    ok_ref = np.isfinite(z_mid)
+    X_ref = geo.backproject(und_mid, np.where(ok_ref, z_mid, 1.0))
+
+    X, ok = geo.depth_points(depth, px, rate, und)
+    assert 100 < np.count_nonzero(ok) < len(px)  # some with depth, some without
+    assert np.count_nonzero(np.isfinite(z) != ok_ref) > 0  # the move changes which have depth
+    np.testing.assert_array_equal(ok, ok_ref)
+    np.testing.assert_array_equal(X, X_ref)
+
+
 def test_pixels_equal_the_numpy_formula_bit_for_bit() -> None:
     """:meth:`RollingShutter.pixels` (one compiled loop, row times and missing depths inside it) is
     the first-order model written in numpy, operation by operation."""
