@@ -25,9 +25,20 @@ from numba import njit
 
 from estimation._kernels import _solve6, _xform
 
-__all__ = ["pose_gauss_newton"]
+__all__ = ["pose_gauss_newton", "rotation_error"]
 
 F64 = npt.NDArray[np.float64]
+
+
+@njit(cache=True)
+def rotation_error(T: Any) -> float:
+    """``max |R R^T - I|`` of the rotation block of a (4, 4) transform: how far it is off SO(3)."""
+    e = 0.0
+    for a in range(3):
+        for b in range(3):
+            d = T[a, 0] * T[b, 0] + T[a, 1] * T[b, 1] + T[a, 2] * T[b, 2] - (1.0 if a == b else 0.0)
+            e = max(e, abs(d))
+    return e
 
 
 @njit(cache=True)

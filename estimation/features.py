@@ -137,8 +137,9 @@ class GridDetector:
         occupied = np.zeros(ncx * ncy, dtype=bool)
         if existing is not None and len(existing):
             ex = np.asarray(existing, np.float32)
-            ecx = np.clip((ex[:, 0] // cs).astype(np.int32), 0, ncx - 1)
-            ecy = np.clip((ex[:, 1] // cs).astype(np.int32), 0, ncy - 1)
+            # (np.minimum/np.maximum: np.clip's generic path costs ~10x on a few hundred points)
+            ecx = np.minimum(np.maximum((ex[:, 0] // cs).astype(np.int32), 0), ncx - 1)
+            ecy = np.minimum(np.maximum((ex[:, 1] // cs).astype(np.int32), 0), ncy - 1)
             occupied[ecy * ncx + ecx] = True
         # Inside the border, in free cells, the strongest few of each cell (one compiled loop).
         chosen = grid_select(pts, resp, occupied, cs, ncx, self.border_px, w, h, budget)

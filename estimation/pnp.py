@@ -32,9 +32,6 @@ PNP_METHODS: dict[str, int] = {
     "sqpnp": cv2.SOLVEPNP_SQPNP,
 }
 
-_EYE3 = np.eye(3)
-_EYE3.flags.writeable = False
-
 
 def pnp(
     points_ref: npt.ArrayLike,
@@ -224,7 +221,7 @@ def refine_pose(
     # rotation): a start made by chaining earlier estimates drifts off it, the steps below
     # multiply onto it and would keep that drift, and it compounds frame after frame.
     T0 = np.array(T_cur_ref, dtype=np.float64)
-    if np.abs(T0[:3, :3] @ T0[:3, :3].T - _EYE3).max() > 1e-12:
+    if _pose_kernel.rotation_error(T0) > 1e-12:
         T0[:3, :3] = cv2.Rodrigues(cv2.Rodrigues(T0[:3, :3])[0])[0]
     # Per step: reprojection rows u, v and a disparity row where one is measured, their
     # Jacobian in a left perturbation [rho, phi], Huber weights, the normal equations, the
