@@ -43,6 +43,22 @@ def _bilinear_weights(a: Any, b: Any) -> tuple[Any, Any, Any, Any]:  # pragma: n
     return (one - a) * (one - b), a * (one - b), (one - a) * b, a * b
 
 
+@numba.njit(cache=True, fastmath=_FASTMATH, nogil=True, inline="always")
+def _scharr(b: Any, q: int, s: int) -> tuple[Any, Any]:  # pragma: no cover - compiled
+    """Scharr's x and y derivatives (raw: 3, 10, 3) at ``q + s + 1`` of a buffer of row stride ``s``."""
+    three = np.float32(3.0)
+    ten = np.float32(10.0)
+    c00 = b[q]
+    c01 = b[q + 1]
+    c02 = b[q + 2]
+    c10 = b[q + s]
+    c12 = b[q + s + 2]
+    c20 = b[q + 2 * s]
+    c21 = b[q + 2 * s + 1]
+    c22 = b[q + 2 * s + 2]
+    return three * (c02 - c00 + c22 - c20) + ten * (c12 - c10), three * (c20 - c00 + c22 - c02) + ten * (c21 - c01)
+
+
 @functools.cache
 def tracker(win: int) -> Callable[..., None]:
     """The kernel for windows of ``win`` pixels (a compile-time constant: the window loops then
@@ -88,8 +104,6 @@ def tracker(win: int) -> Callable[..., None]:
         for q in range(m):
             if q % s < win:
                 colmask[q] = 1.0
-        three = np.float32(3.0)
-        ten = np.float32(10.0)
         eps2 = eps_px * eps_px
         for k in range(n):
             status[k] = True
@@ -124,16 +138,7 @@ def tracker(win: int) -> Callable[..., None]:
                     # At the border: Scharr derivatives on the integer grid (zero outside the
                     # image), then all three interpolated at the window's sub-pixel position.
                     for q in range(s * (win + 1)):
-                        c00 = block[q]
-                        c01 = block[q + 1]
-                        c02 = block[q + 2]
-                        c10 = block[q + s]
-                        c12 = block[q + s + 2]
-                        c20 = block[q + 2 * s]
-                        c21 = block[q + 2 * s + 1]
-                        c22 = block[q + 2 * s + 2]
-                        gxg[q] = three * (c02 - c00 + c22 - c20) + ten * (c12 - c10)
-                        gyg[q] = three * (c20 - c00 + c22 - c02) + ten * (c21 - c01)
+                        gxg[q], gyg[q] = _scharr(block, q, s)
                     for gi in range(win + 1):
                         for gj in range(win + 1):
                             if not (0 <= iy0 + gi < rows and 0 <= ix0 + gj < cols):
@@ -156,16 +161,9 @@ def tracker(win: int) -> Callable[..., None]:
                     for q in range(s * (win + 2)):
                         inter[q] = w00 * block[q] + w01 * block[q + 1] + w10 * block[q + s] + w11 * block[q + s + 1]
                     for q in range(m):
-                        c00 = inter[q]
-                        c01 = inter[q + 1]
-                        c02 = inter[q + 2]
-                        c10 = inter[q + s]
-                        c12 = inter[q + s + 2]
-                        c20 = inter[q + 2 * s]
-                        c21 = inter[q + 2 * s + 1]
-                        c22 = inter[q + 2 * s + 2]
-                        gx = (three * (c02 - c00 + c22 - c20) + ten * (c12 - c10)) * colmask[q]
-                        gy = (three * (c20 - c00 + c22 - c02) + ten * (c21 - c01)) * colmask[q]
+                        sx, sy = _scharr(inter, q, s)
+                        gx = sx * colmask[q]
+                        gy = sy * colmask[q]
                         t_i[q] = inter[q + s + 1]
                         t_x[q] = gx
                         t_y[q] = gy
