@@ -105,12 +105,13 @@ class CameraGeometry:
             else None
         )
         self.depth_intr = depth_intrinsics
-        di = depth_intrinsics
-        own = di is not None and (di.fx != intrinsics.fx or di.cx != intrinsics.cx or di.width != intrinsics.width)
-        self._depth_pinhole = (
-            (True, di.fx, di.fy, di.cx, di.cy) if di is not None and own else (False, 1.0, 1.0, 0.0, 0.0)
-        )
-        """Whether the depth image has a pinhole of its own (pixels are mapped into it), and its fx, fy, cx, cy."""
+        i, di = intrinsics, depth_intrinsics
+        own = di is not None and (di.fx != i.fx or di.cx != i.cx or di.width != i.width)
+        depth_pinhole = (di.fx, di.fy, di.cx, di.cy) if di is not None and own else (1.0, 1.0, 0.0, 0.0)
+        depths = (options.min_depth_m, options.max_depth_m)
+        self._depth_lookup = (*map(float, (i.fx, i.fy, i.cx, i.cy)), own, *map(float, (*depth_pinhole, *depths)))
+        """The depth kernels' camera: the colour pinhole, whether the depth image has one of its own
+        (pixels are mapped into it) and its fx, fy, cx, cy, and the depths accepted (m)."""
         self.use_depth_images = use_depth_images
         self.disparity_offset_px = 0.0
         """Added to every measured disparity before triangulation (``estimation.stereo_offset``)."""
@@ -166,7 +167,6 @@ class CameraGeometry:
         # The depth image is read where the point is at the stamp: taken as a global-shutter image
         # at the colour stamp, which measured better than giving it the colour rows' timing
         # (docs/estimation-log.md). Both lookups, the move and the back-projection: one compiled call.
-        i = self.intr
         X: F64
         ok_s: Bool
         X, ok_s = _depth_points_at_stamp(
@@ -177,13 +177,7 @@ class CameraGeometry:
             sh.row_s,
             rate.omega_rad_s,
             rate.velocity_m_s,
-            i.fx,
-            i.fy,
-            i.cx,
-            i.cy,
-            *self._depth_pinhole,
-            float(self.opts.min_depth_m),
-            float(self.opts.max_depth_m),
+            self._depth_lookup,
         )
         return X, ok_s
 
@@ -201,17 +195,8 @@ class CameraGeometry:
         (one compiled loop, ``estimation._kernels.depth_at``)."""
         if len(px) == 0:
             return np.empty(0)
-        i = self.intr
         z: F64 = _depth_at_px(
-            np.ascontiguousarray(depth_m, dtype=np.float32),
-            np.ascontiguousarray(px),
-            i.fx,
-            i.fy,
-            i.cx,
-            i.cy,
-            *self._depth_pinhole,
-            float(self.opts.min_depth_m),
-            float(self.opts.max_depth_m),
+            np.ascontiguousarray(depth_m, dtype=np.float32), np.ascontiguousarray(px), self._depth_lookup
         )
         return z
 
@@ -370,23 +355,11 @@ class CameraGeometry:
 
 
 @njit(cache=True)
-def _depth_at_px(
-    depth: Any,
-    px: Any,
-    fx: float,
-    fy: float,
-    cx: float,
-    cy: float,
-    remap: bool,
-    dfx: float,
-    dfy: float,
-    dcx: float,
-    dcy: float,
-    min_m: float,
-    max_m: float,
-) -> F64:
+def _depth_at_px(depth: Any, px: Any, lookup: Any) -> F64:
     """:meth:`CameraGeometry.depth_at` of (N, 2) pixels: as float64, mapped into the depth image's
-    own pinhole ``dfx, dfy, dcx, dcy`` when ``remap`` (``(u - cx) * dfx / fx + dcx``)."""
+    own pinhole when it has one (``(u - cx) * dfx / fx + dcx``); ``lookup``:
+    ``CameraGeometry._depth_lookup``."""
+    fx, fy, cx, cy, remap, dfx, dfy, dcx, dcy, min_m, max_m = lookup
     n = px.shape[0]
     u = np.empty(n)
     v = np.empty(n)
@@ -401,31 +374,15 @@ def _depth_at_px(
 
 @njit(cache=True)
 def _depth_points_at_stamp(
-    depth: Any,
-    px: Any,
-    und: Any,
-    mid_row: float,
-    row_s: float,
-    w: Any,
-    v: Any,
-    fx: float,
-    fy: float,
-    cx: float,
-    cy: float,
-    remap: bool,
-    dfx: float,
-    dfy: float,
-    dcx: float,
-    dcy: float,
-    min_m: float,
-    max_m: float,
+    depth: Any, px: Any, und: Any, mid_row: float, row_s: float, w: Any, v: Any, lookup: Any
 ) -> tuple[F64, Bool]:
     """:meth:`CameraGeometry.depth_points` with a rolling shutter in one compiled call, bit for bit
     its numpy steps: the depth at the pixels ``px`` (float32), the undistorted pixels ``und`` moved
     to the stamp with it (``move_pixels``), the depth again where the point is at the stamp, the
     back-projection (depth 1 where there is none) and which have depth."""
+    fx, fy, cx, cy = lookup[0], lookup[1], lookup[2], lookup[3]
     n = px.shape[0]
-    z = _depth_at_px(depth, px, fx, fy, cx, cy, remap, dfx, dfy, dcx, dcy, min_m, max_m)
+    z = _depth_at_px(depth, px, lookup)
     rows = np.empty(n)
     for k in range(n):
         rows[k] = np.float64(px[k, 1])
@@ -434,7 +391,7 @@ def _depth_points_at_stamp(
     for k in range(n):
         moved[k, 0] = np.float32(np.float64(px[k, 0]) + (und_mid[k, 0] - und[k, 0]))
         moved[k, 1] = np.float32(np.float64(px[k, 1]) + (und_mid[k, 1] - und[k, 1]))
-    z = _depth_at_px(depth, moved, fx, fy, cx, cy, remap, dfx, dfy, dcx, dcy, min_m, max_m)
+    z = _depth_at_px(depth, moved, lookup)
     X = np.empty((n, 3))
     ok = np.empty(n, np.bool_)
     for k in range(n):
