@@ -14,7 +14,7 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
-from estimation import _kernels
+from estimation import _kernels, _lens_kernel
 from estimation.lk import PyramidCache
 from estimation.rolling_shutter import CameraRate, RollingShutter, move_pixels
 from estimation.stereo import StereoRig, row_disparity, sparse_disparity, triangulate
@@ -99,6 +99,8 @@ class CameraGeometry:
         self.intr = intrinsics
         self.K = intrinsics.K
         self.dist = intrinsics.dist_array if intrinsics.is_distorted else None
+        self._lens = None if self.dist is None else _lens_kernel.coefficients(self.dist)
+        """The distortion for the compiled lens kernels (None: none, or terms only OpenCV models)."""
         self.rig = (
             StereoRig(intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, float(baseline_m))
             if baseline_m
@@ -140,6 +142,9 @@ class CameraGeometry:
         when known)."""
         if self.dist is None or len(px) == 0:
             und = np.asarray(px, dtype=np.float64)
+        elif self._lens is not None:
+            i = self.intr
+            und = _lens_kernel.undistort(np.ascontiguousarray(px), i.fx, i.fy, i.cx, i.cy, self._lens)
         else:
             out = cv2.undistortPoints(px.reshape(-1, 1, 2).astype(np.float64), self.K, self.dist, P=self.K)
             und = np.asarray(out.reshape(-1, 2), dtype=np.float64)
@@ -343,6 +348,13 @@ class CameraGeometry:
             inside_k: Bool
             uv_k, inside_k = _kernels.project(Xk, Tk, i.fx, i.fy, i.cx, i.cy, float(i.width), float(i.height), m)
             return uv_k, inside_k
+        if self._lens is not None:
+            uv_l: F32
+            inside_l: Bool
+            uv_l, inside_l = _lens_kernel.project(
+                Xk, Tk, i.fx, i.fy, i.cx, i.cy, self._lens, float(i.width), float(i.height), m
+            )
+            return uv_l, inside_l
         Xc = _kernels.transform(Xk, Tk)
         front = Xc[:, 2] > 0.05
         pts, _ = cv2.projectPoints(Xc[:, None, :], np.zeros(3), np.zeros(3), self.K, self.dist)

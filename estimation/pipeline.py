@@ -62,6 +62,7 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
+from estimation import _lens_kernel
 from estimation.frames import FramePreparer
 from estimation.lk import ImagePyramid, lk_track
 from estimation.odometry import VisualOdometry
@@ -132,6 +133,10 @@ def warm_up(method: Method | str) -> list[FramePose]:
     # focal length (VoOptions.for_camera), these frames use 9.
     pyr = ImagePyramid.build(gray, 1, 11)
     lk_track(pyr, pyr, np.full((1, 2), 50.0, np.float32), levels=1, win_px=11)
+    # The lens kernels of a distorted camera (these frames have none).
+    k = np.zeros(_lens_kernel.MAX_COEFFS)
+    _lens_kernel.undistort(np.zeros((1, 2), np.float32), intr.fx, intr.fy, intr.cx, intr.cy, k)
+    _lens_kernel.project(np.ones((1, 3)), np.eye(4), intr.fx, intr.fy, intr.cx, intr.cy, k, float(w), float(h), 0.0)
     if m is not Method.FLOW:
         # PnP RANSAC (every keyframe method's fallback) may not run on these frames: once here.
         X = np.c_[rng.uniform(-1.0, 1.0, (8, 2)), rng.uniform(1.5, 3.0, 8)]
