@@ -16,7 +16,7 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
-__all__ = ["grid_select", "min_eigenvalue_at"]
+__all__ = ["count_cells", "grid_select", "min_eigenvalue_at"]
 
 
 @njit(cache=True)
@@ -126,3 +126,35 @@ def min_eigenvalue_at(gray: Any, pts: Any) -> npt.NDArray[np.float32]:
         half_diff = 0.5 * (sxx - syy)
         out[i] = half_tr - math.sqrt(half_diff * half_diff + sxy * sxy)
     return out
+
+
+@njit(cache=True)
+def count_cells(px: Any, cell_px: float) -> int:
+    """How many square cells of ``cell_px`` (a grid from the image origin) hold at least one of the
+    (N, 2) pixels ``px``: ``len(np.unique(...))`` of their cells, by a table over the cells they span
+    (sorting only when they span a huge area)."""
+    n = px.shape[0]
+    if n == 0:
+        return 0
+    cx = np.empty(n, np.int64)
+    cy = np.empty(n, np.int64)
+    for i in range(n):
+        cx[i] = np.int64(math.floor(np.float64(px[i, 0]) / cell_px))
+        cy[i] = np.int64(math.floor(np.float64(px[i, 1]) / cell_px))
+    x0, y0 = cx.min(), cy.min()
+    nx, ny = cx.max() - x0 + 1, cy.max() - y0 + 1
+    if nx * ny <= 16 * n + 4096:
+        seen = np.zeros(nx * ny, np.bool_)
+        count = 0
+        for i in range(n):
+            j = (cy[i] - y0) * nx + (cx[i] - x0)
+            if not seen[j]:
+                seen[j] = True
+                count += 1
+        return count
+    keys = np.sort((cy - y0) * nx + (cx - x0))
+    count = 1
+    for i in range(1, n):
+        if keys[i] != keys[i - 1]:
+            count += 1
+    return count

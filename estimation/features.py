@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from estimation._grid_kernel import grid_select, min_eigenvalue_at
+from estimation._grid_kernel import count_cells, grid_select, min_eigenvalue_at
 from flightkit.errors import EstimationError
 
 __all__ = ["DescriptorExtractor", "Features", "GridDetector", "as_gray", "occupied_cells"]
@@ -149,10 +149,7 @@ class GridDetector:
 def occupied_cells(px: Points2, cell_px: float) -> int:
     """How many square cells of ``cell_px`` (a grid from the image origin) hold at least one of
     the pixels ``px`` (N, 2)."""
-    if len(px) == 0:
-        return 0
-    cells = np.floor(np.asarray(px, np.float64) / cell_px).astype(np.int64)
-    return len(np.unique(cells[:, 1] * (1 << 20) + cells[:, 0]))
+    return int(count_cells(np.asarray(px).reshape(-1, 2), float(cell_px)))
 
 
 @dataclass(frozen=True, slots=True, eq=False)

@@ -16,6 +16,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from estimation import _kernels, _pose_kernel
+from estimation._grid_kernel import count_cells
 from estimation.pnp import refine_pose
 from flightkit.errors import EstimationError
 
@@ -513,3 +514,15 @@ def test_grid_detector_ranks_a_cells_corners_by_the_chosen_score() -> None:
     assert not np.array_equal(st_pick, fast_pick)  # the score decides
     with pytest.raises(EstimationError, match="shi-tomasi"):
         GridDetector(score="harris")
+
+
+@pytest.mark.parametrize("n", [0, 1, 2, 7, 300, 4000])
+@pytest.mark.parametrize("spread_px", [640.0, 1e7])
+def test_count_cells_equals_the_unique_cells(n: int, spread_px: float) -> None:
+    # a spread of 1e7 px spans too many cells for the table: the sorting path
+    rng = np.random.default_rng(n)
+    px = (rng.random((n, 2)) * spread_px - 30.0).astype(np.float32)
+    for cell_px in (32.0, 70.0):
+        cells = np.floor(px.astype(np.float64) / cell_px).astype(np.int64)
+        ref = len(np.unique(cells, axis=0)) if n else 0
+        assert count_cells(px, cell_px) == ref
