@@ -107,7 +107,7 @@ def _pose_rows(
     v3 = -fy * (yz * yz + 1.0)
     v4 = (fy * xz) * yz
     v5 = fy * xz
-    dm = disp[i]
+    dm = disp[i] if disp.shape[0] else np.nan
     if dm == dm:
         kz = fb * iz * iz
         rd, d2, d3, d4 = fb * iz - dm, -kz * c, -kz * y * c, kz * x * c
@@ -136,12 +136,12 @@ def pose_gauss_newton(
     """The whole Gauss-Newton loop of ``estimation.pnp.refine_pose``.
 
     Per step and point ``i`` of ``X`` (reference frame) seen at ``uv[i]``: the u and v
-    reprojection residuals and, where ``disp[i]`` is a number, the disparity residual
+    reprojection residuals and, where ``disp[i]`` is a number (``disp`` empty: nowhere), the disparity residual
     ``fb / z - disp[i]``; their Jacobian rows in a left perturbation ``[rho, phi]``, Huber
     weights (:func:`_huber_weight`); the weighted normal equations summed point by point,
     the 6x6 solve (:func:`_solve6`), the left update ``T <- exp(xi) T`` (Rodrigues'
     rotation, translation ``xi[:3]``); stops when ``xi . xi < stop``, or before a step when a
-    point is at or behind ``z = 1e-6`` or the system is singular. ``tw[i]`` scales point ``i``'s
+    point is at or behind ``z = 1e-6`` or the system is singular. ``tw[i]`` (``tw`` empty: 1) scales point ``i``'s
     translation columns and its disparity row (1: full say; 0: the point informs the rotation
     only). ``dof`` is 6 (an argument,
     so that LLVM does not unroll the loops). Returns the refined (4, 4) pose (a copy of ``T0``
@@ -159,6 +159,7 @@ def pose_gauss_newton(
     """
     n = X.shape[0]
     whiten = kf_var.shape[0] > 0
+    has_tw = tw.shape[0] > 0
     T: F64 = T0.copy()
     H = np.empty((dof, dof))
     g = np.empty(dof)
@@ -182,7 +183,7 @@ def pose_gauss_newton(
                 behind = True
                 break
             x, y, ru, u0, u2, u3, u4, u5, rv, v1, v2, v3, v4, v5, has_d, rd, d2, d3, d4 = _pose_rows(
-                X, T, i, z, uv, disp, tw[i], fx, fy, cx, cy, fb
+                X, T, i, z, uv, disp, tw[i] if has_tw else 1.0, fx, fy, cx, cy, fb
             )
             if whiten:
                 rows = 3 if has_d else 2

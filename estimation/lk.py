@@ -9,6 +9,7 @@ OpenCV does (``estimation._lk_kernel``), so the results agree with OpenCV's to ~
 
 from __future__ import annotations
 
+import functools
 from collections import OrderedDict
 from dataclasses import dataclass
 
@@ -57,28 +58,49 @@ class ImagePyramid:
         ``max_win_px``; fewer levels when the image gets too small for such a window (as OpenCV)."""
         if image.ndim != 2 or image.dtype != np.uint8:
             raise EstimationError(f"LK tracking needs an 8-bit grey image; got {image.dtype} {image.shape}")
-        pad = max_win_px + 2
-        lvls = [image]
-        while len(lvls) <= levels:
-            h, w = lvls[-1].shape
-            if not _level_above_fits(w, h, max_win_px):
-                break
-            lvls.append(np.asarray(cv2.pyrDown(lvls[-1]), dtype=np.uint8))
-        dims = [(lv.shape[1], lv.shape[0]) for lv in lvls]
-        offsets = [0]
-        for w, h in dims:
-            offsets.append(offsets[-1] + (w + 2 * pad) * (h + 2 * pad))
-        flat = np.empty(offsets[-1], np.uint8)
-        for lv, off, (w, h) in zip(lvls, offsets, dims, strict=False):
-            dst = flat[off : off + (w + 2 * pad) * (h + 2 * pad)].reshape(h + 2 * pad, w + 2 * pad)
-            cv2.copyMakeBorder(lv, pad, pad, pad, pad, cv2.BORDER_REFLECT_101, dst=dst)
-        sizes, offsets_a = np.array(dims, np.int64), np.array(offsets[:-1], np.int64)
-        return cls(image, len(lvls) - 1, pad, flat, offsets_a, sizes)
+        lay = _layout(image.shape[0], image.shape[1], levels, max_win_px)
+        pad = lay.pad_px
+        flat = np.empty(lay.size, np.uint8)
+        level = image
+        for i, (off, end, shape) in enumerate(lay.spans):
+            if i:
+                level = np.asarray(cv2.pyrDown(level), dtype=np.uint8)
+            cv2.copyMakeBorder(level, pad, pad, pad, pad, cv2.BORDER_REFLECT_101, dst=flat[off:end].reshape(shape))
+        return cls(image, len(lay.spans) - 1, pad, flat, lay.offsets, lay.sizes)
 
     @property
     def shape(self) -> tuple[int, int]:
         h, w = self.image.shape
         return h, w
+
+
+@dataclass(frozen=True, eq=False)
+class _Layout:
+    """Where each padded level of an :class:`ImagePyramid` lies in ``flat`` (one per image size)."""
+
+    pad_px: int
+    size: int
+    spans: tuple[tuple[int, int, tuple[int, int]], ...]
+    """Per level: its start and end in ``flat`` and its padded (rows, columns)."""
+    offsets: npt.NDArray[np.int64]
+    sizes: npt.NDArray[np.int64]
+
+
+@functools.lru_cache(maxsize=16)
+def _layout(h: int, w: int, levels: int, max_win_px: int) -> _Layout:
+    """The layout of the pyramid of an h x w image (:meth:`ImagePyramid.build`): levels above 0
+    while ``cv2.pyrDown``'s next level fits the window (as OpenCV), at most ``levels``."""
+    pad = max_win_px + 2
+    dims = [(w, h)]
+    while len(dims) <= levels and _level_above_fits(*dims[-1], max_win_px):
+        dims.append(((dims[-1][0] + 1) // 2, (dims[-1][1] + 1) // 2))
+    spans, off = [], 0
+    for lw, lh in dims:
+        end = off + (lw + 2 * pad) * (lh + 2 * pad)
+        spans.append((off, end, (lh + 2 * pad, lw + 2 * pad)))
+        off = end
+    offsets, sizes = np.array([s[0] for s in spans], np.int64), np.array(dims, np.int64)
+    return _Layout(pad, off, tuple(spans), offsets, sizes)  # (shared by the pyramids of this size: read only)
 
 
 class PyramidCache:

@@ -424,9 +424,8 @@ def _local_fit(X: Any, uv: Any, mask: Any, R: Any, t: Any, fx: float, fy: float,
         T0[r, 3] = t[r]
         for c in range(3):
             T0[r, c] = R[r, c]
-    disp = np.full(m, np.nan)
-    tw = np.ones(m)
-    return pose_gauss_newton(Xi, T0, ui, disp, tw, np.empty(0), fx, fy, cx, cy, 0.0, 1e9, _LO_STEPS, 1e-12, 6)
+    none = np.empty(0)  # no disparities, no translation weights, exact points
+    return pose_gauss_newton(Xi, T0, ui, none, none, none, fx, fy, cx, cy, 0.0, 1e9, _LO_STEPS, 1e-12, 6)
 
 
 @njit(cache=True)

@@ -140,6 +140,9 @@ def pnp(
     return Motion(make_T(R, tvec.ravel()), mask, True)
 
 
+_NONE = np.empty(0)
+"""refine_pose's empty optional per-point arrays (the kernel reads empty as none given)."""
+
 _GN_STOP = 1e-10
 """refine_pose stops when the squared step (m^2 + rad^2) falls below this: a 10 um / 10 urad
 step. (1e-8 stopped a step early and cost 3 mm of ATE on the synthetic circle; 1e-14 ran
@@ -193,22 +196,19 @@ def refine_pose(
     n = len(X)
     if not huber_px > 0:
         raise EstimationError(f"refine_pose huber_px is {huber_px}; use a positive threshold (1 px is typical)")
+    # (empty: no disparities, every translation weight 1)
     if disparity_px is None or fb_px_m <= 0:
-        disp = np.full(n, np.nan)
+        disp = _NONE
     else:
         disp = np.ascontiguousarray(disparity_px, dtype=np.float64).reshape(-1)
-    tw = (
-        np.ones(n)
-        if translation_weight is None
-        else np.ascontiguousarray(translation_weight, dtype=np.float64).reshape(-1)
-    )
-    if len(uv) != n or len(disp) != n:
+    tw = _NONE if translation_weight is None else np.ascontiguousarray(translation_weight, dtype=np.float64).reshape(-1)
+    if len(uv) != n or (disp is not _NONE and len(disp) != n):
         raise EstimationError(
             f"refine_pose got {n} points, {len(uv)} pixels and {len(disp)} disparities; give one of each per point"
         )
-    if len(tw) != n:
+    if tw is not _NONE and len(tw) != n:
         raise EstimationError(f"refine_pose got {n} points and {len(tw)} translation weights; give one per point")
-    var = np.empty(0) if point_var is None else np.ascontiguousarray(point_var, dtype=np.float64).reshape(-1)
+    var = _NONE if point_var is None else np.ascontiguousarray(point_var, dtype=np.float64).reshape(-1)
     if point_var is not None and (len(var) != n or not fb_px_m > 0 or not np.all(var >= 0.0)):
         raise EstimationError(
             f"refine_pose got {n} points, {len(var)} point variances (all >= 0: {bool(np.all(var >= 0.0))}) "
