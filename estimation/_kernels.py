@@ -36,6 +36,7 @@ __all__ = [
     "depth_at",
     "flow_hypotheses",
     "flow_refit",
+    "invert_rigid",
     "project",
     "reproj_err2",
     "sampson_distance",
@@ -89,6 +90,19 @@ def transform(X: Any, T: Any) -> F64:
         out[i, 1] = _xform(X, T, i, 1)
         out[i, 2] = _xform(X, T, i, 2)
     return out
+
+
+@njit(cache=True)
+def invert_rigid(T: Any) -> F64:
+    """The inverse of a rigid (4, 4) transform: ``R.T`` and ``-R.T @ t`` (summed in the order of
+    numpy's product, the same bits), the last row ``0 0 0 1``."""
+    Ti = np.zeros((4, 4))
+    for r in range(3):
+        for c in range(3):
+            Ti[r, c] = T[c, r]
+        Ti[r, 3] = -(T[0, r] * T[0, 3] + T[1, r] * T[1, 3] + T[2, r] * T[2, 3])
+    Ti[3, 3] = 1.0
+    return Ti
 
 
 @njit(cache=True)

@@ -18,6 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from estimation import _kernels
+
 __all__ = ["Motion", "failed_motion", "invert", "make_T", "median", "ransac_iterations", "rotation_angle_rad"]
 
 F64 = npt.NDArray[np.float64]
@@ -81,11 +83,8 @@ def make_T(R: npt.ArrayLike, t: npt.ArrayLike) -> F64:
 
 
 def invert(T: F64) -> F64:
-    """Inverse of a rigid 4x4 transform (no general matrix inverse)."""
-    Ti = _EYE4.copy()
-    Rt = T[:3, :3].T
-    Ti[:3, :3] = Rt
-    Ti[:3, 3] = -Rt @ T[:3, 3]
+    """Inverse of a rigid 4x4 transform (no general matrix inverse; a new array)."""
+    Ti: F64 = _kernels.invert_rigid(np.ascontiguousarray(T, dtype=np.float64))
     return Ti
 
 

@@ -17,6 +17,7 @@ from scipy.spatial.transform import Rotation
 
 from estimation import _kernels, _pose_kernel
 from estimation._grid_kernel import count_cells
+from estimation.motion import invert
 from estimation.pnp import refine_pose
 from flightkit.errors import EstimationError
 
@@ -526,3 +527,17 @@ def test_count_cells_equals_the_unique_cells(n: int, spread_px: float) -> None:
         cells = np.floor(px.astype(np.float64) / cell_px).astype(np.int64)
         ref = len(np.unique(cells, axis=0)) if n else 0
         assert count_cells(px, cell_px) == ref
+
+
+def test_invert_rigid_equals_the_numpy_inverse() -> None:
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        T = _pose(rng, rot_sigma=1.0, t_sigma=5.0)
+        Rt = T[:3, :3].T
+        ref = np.eye(4)
+        ref[:3, :3] = Rt
+        ref[:3, 3] = -Rt @ T[:3, 3]
+        Ti = invert(T)
+        assert same(Ti, ref)
+        assert np.allclose(Ti @ T, np.eye(4), atol=1e-12)
+        assert Ti is not T and not np.shares_memory(Ti, T)
