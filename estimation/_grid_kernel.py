@@ -131,30 +131,46 @@ def min_eigenvalue_at(gray: Any, pts: Any) -> npt.NDArray[np.float32]:
 @njit(cache=True)
 def count_cells(px: Any, cell_px: float) -> int:
     """How many square cells of ``cell_px`` (a grid from the image origin) hold at least one of the
-    (N, 2) pixels ``px``: ``len(np.unique(...))`` of their cells, by a table over the cells they span
-    (sorting only when they span a huge area)."""
+    (N, 2) pixels ``px`` (non-finite ones hold none): ``len(np.unique(...))`` of their cells, by a
+    table over the cells they span (sorting only when they span a huge area)."""
     n = px.shape[0]
-    if n == 0:
-        return 0
     cx = np.empty(n, np.int64)
     cy = np.empty(n, np.int64)
+    m = 0
     for i in range(n):
-        cx[i] = np.int64(math.floor(np.float64(px[i, 0]) / cell_px))
-        cy[i] = np.int64(math.floor(np.float64(px[i, 1]) / cell_px))
+        u = np.float64(px[i, 0]) / cell_px
+        v = np.float64(px[i, 1]) / cell_px
+        if abs(u) < 2.0**52 and abs(v) < 2.0**52:  # finite, and its cell an exact integer
+            cx[m] = np.int64(math.floor(u))
+            cy[m] = np.int64(math.floor(v))
+            m += 1
+    if m == 0:
+        return 0
+    cx, cy = cx[:m], cy[:m]
     x0, y0 = cx.min(), cy.min()
     nx, ny = cx.max() - x0 + 1, cy.max() - y0 + 1
-    if nx * ny <= 16 * n + 4096:
+    limit = 16 * m + 4096
+    if nx <= limit and ny <= limit // nx:
         seen = np.zeros(nx * ny, np.bool_)
         count = 0
-        for i in range(n):
+        for i in range(m):
             j = (cy[i] - y0) * nx + (cx[i] - x0)
             if not seen[j]:
                 seen[j] = True
                 count += 1
         return count
-    keys = np.sort((cy - y0) * nx + (cx - x0))
-    count = 1
-    for i in range(1, n):
-        if keys[i] != keys[i - 1]:
-            count += 1
+    order = np.argsort(cx, kind="mergesort")  # by column, then the distinct rows of each column
+    xs, ys = cx[order], cy[order]
+    count = 0
+    k = 0
+    while k < m:
+        e = k + 1
+        while e < m and xs[e] == xs[k]:
+            e += 1
+        col = np.sort(ys[k:e])
+        count += 1
+        for q in range(1, e - k):
+            if col[q] != col[q - 1]:
+                count += 1
+        k = e
     return count

@@ -4,9 +4,8 @@ eight coefficients ``(k1, k2, p1, p2, k3, k4, k5, k6)``, both ways.
 :func:`undistort` is ``cv2.undistortPoints(px, K, dist, P=K)`` (its default five fixed-point
 steps) and :func:`project` is ``cv2.projectPoints`` of points already in the camera frame, written
 out operation by operation in OpenCV's order, so both give the same bits
-(``tests/unit/test_lens_kernel.py``); a call costs about a tenth of the OpenCV call with its
-array reshaping at ~300 points. Coefficients past the eighth (thin prism, tilt) are not here:
-``CameraGeometry`` keeps OpenCV for those.
+(``tests/unit/test_lens_kernel.py``). Coefficients past the eighth (thin prism, tilt) are not
+here: ``CameraGeometry`` keeps OpenCV for those.
 """
 
 from __future__ import annotations

@@ -148,8 +148,8 @@ class GridDetector:
 
 def occupied_cells(px: Points2, cell_px: float) -> int:
     """How many square cells of ``cell_px`` (a grid from the image origin) hold at least one of
-    the pixels ``px`` (N, 2)."""
-    return int(count_cells(np.asarray(px).reshape(-1, 2), float(cell_px)))
+    the pixels ``px`` (N, 2); non-finite pixels hold none."""
+    return int(count_cells(np.ascontiguousarray(px, dtype=np.float64).reshape(-1, 2), float(cell_px)))
 
 
 @dataclass(frozen=True, slots=True, eq=False)

@@ -60,7 +60,7 @@ class ImagePyramid:
             raise EstimationError(f"LK tracking needs an 8-bit grey image; got {image.dtype} {image.shape}")
         lay = _layout(image.shape[0], image.shape[1], levels, max_win_px)
         pad = lay.pad_px
-        flat = np.empty(lay.size, np.uint8)
+        flat = np.empty(lay.flat_len, np.uint8)
         level = image
         for i, (off, end, shape) in enumerate(lay.spans):
             if i:
@@ -79,7 +79,7 @@ class _Layout:
     """Where each padded level of an :class:`ImagePyramid` lies in ``flat`` (one per image size)."""
 
     pad_px: int
-    size: int
+    flat_len: int
     spans: tuple[tuple[int, int, tuple[int, int]], ...]
     """Per level: its start and end in ``flat`` and its padded (rows, columns)."""
     offsets: npt.NDArray[np.int64]

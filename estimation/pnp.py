@@ -202,10 +202,10 @@ def refine_pose(
     else:
         disp = np.ascontiguousarray(disparity_px, dtype=np.float64).reshape(-1)
     tw = _NONE if translation_weight is None else np.ascontiguousarray(translation_weight, dtype=np.float64).reshape(-1)
-    if len(uv) != n or (disp is not _NONE and len(disp) != n):
-        raise EstimationError(
-            f"refine_pose got {n} points, {len(uv)} pixels and {len(disp)} disparities; give one of each per point"
-        )
+    if len(uv) != n:
+        raise EstimationError(f"refine_pose got {n} points and {len(uv)} pixels; give one pixel per point")
+    if disp is not _NONE and len(disp) != n:
+        raise EstimationError(f"refine_pose got {n} points and {len(disp)} disparities; give one per point (or None)")
     if tw is not _NONE and len(tw) != n:
         raise EstimationError(f"refine_pose got {n} points and {len(tw)} translation weights; give one per point")
     var = _NONE if point_var is None else np.ascontiguousarray(point_var, dtype=np.float64).reshape(-1)

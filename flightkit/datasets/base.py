@@ -67,6 +67,10 @@ KINECT_READOUT_S = 0.020
 measured on TUM fr1 and checked on 7-Scenes (docs/estimation.md, "Rolling shutter")."""
 
 
+_DIST_LENGTHS = (0, 4, 5, 8, 12, 14)
+"""The lengths of an OpenCV distortion vector (none, radial-tangential, + k3, rational, thin prism, tilt)."""
+
+
 @dataclass(frozen=True, slots=True)
 class CameraIntrinsics:
     """Pinhole intrinsics of one camera, in pixels.
@@ -101,7 +105,14 @@ class CameraIntrinsics:
             raise DatasetError(f"image size must be positive, got {self.width}x{self.height}")
         object.__setattr__(self, "width", int(self.width))
         object.__setattr__(self, "height", int(self.height))
-        object.__setattr__(self, "dist", tuple(float(d) for d in self.dist))
+        dist = tuple(float(d) for d in self.dist)
+        if len(dist) not in _DIST_LENGTHS or not all(math.isfinite(d) for d in dist):
+            raise DatasetError(
+                f"camera distortion {dist} has {len(dist)} coefficients; OpenCV's model takes "
+                "4, 5, 8, 12 or 14 finite ones (k1, k2, p1, p2[, k3[, k4, k5, k6[, s1-s4[, tau_x, tau_y]]]]) "
+                "or none: give them in that order, zeros for the terms the calibration did not fit"
+            )
+        object.__setattr__(self, "dist", dist)
         readout = float(self.readout_s)
         if not (math.isfinite(readout) and readout >= 0.0):
             raise DatasetError(f"rolling-shutter readout_s is {readout}; it must be 0 (global shutter) or more")

@@ -236,6 +236,21 @@ def test_video_with_json_calibration(tmp_path: Path) -> None:
     (tmp_path / "clip.json").write_text(json.dumps(calib))
     with pytest.raises(DatasetError, match="is 64x48 but"):
         open_sequence(video)
+    # (k1, k2, k3) from another tool is not OpenCV's order: refused, not read as (k1, k2, p1)
+    calib["width"], calib["dist"] = 64, [0.1, -0.05, 0.01]
+    (tmp_path / "clip.json").write_text(json.dumps(calib))
+    with pytest.raises(DatasetError, match="has 3 coefficients; OpenCV's model takes 4, 5, 8, 12 or 14"):
+        open_sequence(video)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 6, 7, 9, 11, 16])
+def test_a_distortion_of_no_opencv_length_is_refused(n: int) -> None:
+    with pytest.raises(DatasetError, match=f"has {n} coefficients"):
+        CameraIntrinsics(500.0, 500.0, 320.0, 240.0, 640, 480, (0.01,) * n)
+    with pytest.raises(DatasetError, match="finite"):
+        CameraIntrinsics(500.0, 500.0, 320.0, 240.0, 640, 480, (0.1, float("nan"), 0.0, 0.0))
+    for ok in (0, 4, 5, 8, 12, 14):
+        assert len(CameraIntrinsics(500.0, 500.0, 320.0, 240.0, 640, 480, (0.01,) * ok).dist) == ok
 
 
 _HEADER = (

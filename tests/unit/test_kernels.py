@@ -17,6 +17,7 @@ from scipy.spatial.transform import Rotation
 
 from estimation import _kernels, _pose_kernel
 from estimation._grid_kernel import count_cells
+from estimation.features import occupied_cells
 from estimation.motion import invert
 from estimation.pnp import refine_pose
 from flightkit.errors import EstimationError
@@ -124,12 +125,28 @@ def test_refine_pose_refuses_inputs_the_compiled_loop_cannot_take() -> None:
     K = np.array([[FX, 0.0, CX], [0.0, FY, CY], [0.0, 0.0, 1.0]])
     with pytest.raises(EstimationError, match="huber_px is 0"):
         refine_pose(np.eye(4), X, uv, K, huber_px=0.0)
-    with pytest.raises(EstimationError, match="10 points, 9 pixels"):
+    with pytest.raises(EstimationError, match="10 points and 9 pixels"):
         refine_pose(np.eye(4), X, uv[:9], K)
     with pytest.raises(EstimationError, match="and 11 disparities"):
         refine_pose(np.eye(4), X, uv, K, np.ones(11), 26.0)
     with pytest.raises(EstimationError, match="and 9 translation weights"):
         refine_pose(np.eye(4), X, uv, K, translation_weight=np.ones(9))
+
+
+def test_pose_kernel_reads_empty_arrays_as_none_given() -> None:
+    # empty disparities = NaN everywhere, empty translation weights = ones: the same bits
+    rng = np.random.default_rng(9)
+    X = _points(rng, 60)
+    uv = _pixels(rng, X, _pose(rng, 0.05, 0.05))
+    T0 = np.eye(4)
+    none = np.empty(0)
+    args = (FX, FY, CX, CY, 26.0, 1.0, 6, 1e-10, 6)
+    filled = _pose_kernel.pose_gauss_newton(X, T0, uv, np.full(60, np.nan), np.ones(60), none, *args)
+    empty = _pose_kernel.pose_gauss_newton(X, T0, uv, none, none, none, *args)
+    assert np.array_equal(filled, empty) and not np.array_equal(empty, T0)
+    half = np.ones(60)
+    half[::2] = 0.5  # (and a weight given is read)
+    assert not np.array_equal(_pose_kernel.pose_gauss_newton(X, T0, uv, none, half, none, *args), empty)
 
 
 @pytest.mark.parametrize("n", [4, 5, 16, 200, 457])
@@ -522,11 +539,17 @@ def test_grid_detector_ranks_a_cells_corners_by_the_chosen_score() -> None:
 def test_count_cells_equals_the_unique_cells(n: int, spread_px: float) -> None:
     # a spread of 1e7 px spans too many cells for the table: the sorting path
     rng = np.random.default_rng(n)
-    px = (rng.random((n, 2)) * spread_px - 30.0).astype(np.float32)
+    px = rng.random((n, 2)) * spread_px - 30.0
+    if n > 2:
+        px[1, 0], px[2, 1] = np.nan, -np.inf  # non-finite pixels are in no cell
     for cell_px in (32.0, 70.0):
-        cells = np.floor(px.astype(np.float64) / cell_px).astype(np.int64)
-        ref = len(np.unique(cells, axis=0)) if n else 0
+        finite = np.isfinite(px).all(axis=1)
+        cells = np.floor(px[finite] / cell_px).astype(np.int64)
+        ref = len(np.unique(cells, axis=0)) if len(cells) else 0
         assert count_cells(px, cell_px) == ref
+        assert occupied_cells(px.astype(np.float32), cell_px) == len(
+            np.unique(np.floor(px[finite].astype(np.float32).astype(np.float64) / cell_px), axis=0)
+        )
 
 
 def test_invert_rigid_equals_the_numpy_inverse() -> None:

@@ -99,6 +99,7 @@ def test_thin_prism_terms_stay_with_opencv() -> None:
 def test_geometry_undistorts_and_projects_through_the_kernels() -> None:
     dist = np.array(MODELS["5 (TUM fr1)"])
     geo = CameraGeometry(CameraIntrinsics(FX, FY, CX, CY, W, H, tuple(dist)), None, None, VoOptions(), True)
+    assert geo._lens is not None  # the kernels, not OpenCV
     px = _pixels(300, 4)
     und = geo.undistort(px)
     assert _close(und, cv2.undistortPoints(px.reshape(-1, 1, 2).astype(np.float64), K, dist, P=K).reshape(-1, 2))

@@ -94,3 +94,23 @@ def test_non_finite_points_and_tiny_images_fail_cleanly() -> None:
     assert tiny.levels == 0
     p1, ok = lk_track(tiny, tiny, np.array([[3.0, 3.0]], np.float32), win_px=11)
     assert not ok.any()
+
+
+@pytest.mark.parametrize("shape", [(480, 640), (481, 641), (370, 1226), (37, 53), (12, 9)])
+@pytest.mark.parametrize("win", [5, 11, 21])
+def test_pyramid_levels_are_pyrdown_padded_by_reflection(shape: tuple[int, int], win: int) -> None:
+    rng = np.random.default_rng(shape[0] + win)
+    image = rng.integers(0, 256, shape, dtype=np.uint8)
+    pyr = ImagePyramid.build(image, 4, win)
+    pad = win + 2
+    level = image
+    for k in range(pyr.levels + 1):
+        if k:
+            level = cv2.pyrDown(level)
+        h, w = level.shape
+        assert tuple(pyr.sizes[k]) == (w, h)
+        got = pyr.flat[pyr.offsets[k] : pyr.offsets[k] + (h + 2 * pad) * (w + 2 * pad)].reshape(h + 2 * pad, -1)
+        assert np.array_equal(got, cv2.copyMakeBorder(level, pad, pad, pad, pad, cv2.BORDER_REFLECT_101))
+    # as OpenCV: no level whose next one is not larger than the window
+    assert pyr.levels == 4 or not ((level.shape[1] + 1) // 2 > win and (level.shape[0] + 1) // 2 > win)
+    assert pyr.offsets[-1] + (h + 2 * pad) * (w + 2 * pad) == len(pyr.flat)
