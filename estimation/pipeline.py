@@ -67,6 +67,7 @@ from estimation.frames import FramePreparer
 from estimation.lk import ImagePyramid, lk_track
 from estimation.odometry import VisualOdometry
 from estimation.p3p import pnp_ransac
+from estimation.pose_track import scale_motion
 from estimation.vo_options import (
     EssentialOptions,
     FlowOptions,
@@ -133,6 +134,8 @@ def warm_up(method: Method | str) -> list[FramePose]:
     # focal length (VoOptions.for_camera), these frames use 9.
     pyr = ImagePyramid.build(gray, 1, 11)
     lk_track(pyr, pyr, np.full((1, 2), 50.0, np.float32), levels=1, win_px=11)
+    # The prediction over an interval other than the last step's (these frames are evenly spaced).
+    scale_motion(np.eye(4), 0.5)
     # The lens kernels of a distorted camera (these frames have none).
     k = np.zeros(_lens_kernel.MAX_COEFFS)
     _lens_kernel.undistort(np.zeros((1, 2), np.float32), intr.fx, intr.fy, intr.cx, intr.cy, k)

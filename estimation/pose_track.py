@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import math
 
-import cv2
 import numpy as np
 import numpy.typing as npt
 
+from estimation._motion_kernel import scaled_step
 from estimation.motion import rotation_angle_rad
 
 __all__ = ["PoseTrack", "scale_motion"]
@@ -20,10 +20,7 @@ def scale_motion(T_step: F64, factor: float) -> F64:
     """Scale a relative motion (constant velocity for a different dt)."""
     if abs(factor - 1.0) < 1e-3:
         return T_step.copy()
-    rv = cv2.Rodrigues(T_step[:3, :3])[0] * factor
-    T = np.eye(4)
-    T[:3, :3] = cv2.Rodrigues(rv)[0]
-    T[:3, 3] = T_step[:3, 3] * factor
+    T: F64 = scaled_step(np.ascontiguousarray(T_step, dtype=np.float64), float(factor))
     return T
 
 

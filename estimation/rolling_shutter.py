@@ -14,10 +14,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-import cv2
 import numpy as np
 import numpy.typing as npt
 from numba import njit
+
+from estimation._motion_kernel import step_rate
 
 __all__ = ["CameraRate", "RollingShutter", "move_pixels"]
 
@@ -44,9 +45,8 @@ class CameraRate:
     @staticmethod
     def from_step(T_cur_prev: F64, dt_s: float) -> CameraRate:
         """The mean rate over a step ``T_cur_prev`` (prev-camera to cur-camera) of ``dt_s``."""
-        rvec, _ = cv2.Rodrigues(np.ascontiguousarray(T_cur_prev[:3, :3].T))
-        omega = np.asarray(rvec, dtype=np.float64).reshape(3) / dt_s
-        return CameraRate(omega, np.asarray(-T_cur_prev[:3, 3] / dt_s, dtype=np.float64))
+        omega, v = step_rate(np.ascontiguousarray(T_cur_prev, dtype=np.float64), float(dt_s))
+        return CameraRate(omega, v)
 
 
 _FAR_M = 1e9

@@ -564,3 +564,39 @@ def test_invert_rigid_equals_the_numpy_inverse() -> None:
         assert same(Ti, ref)
         assert np.allclose(Ti @ T, np.eye(4), atol=1e-12)
         assert Ti is not T and not np.shares_memory(Ti, T)
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-9, 1e-4, 0.03, 1.0, 2.7, 3.0, np.pi - 1e-7, np.pi])
+def test_rotation_log_and_the_step_helpers_agree_with_rodrigues(angle: float) -> None:
+    from estimation._motion_kernel import _log, scaled_step, step_rate
+
+    def rotation_log(R: np.ndarray) -> np.ndarray:
+        out = np.empty(3)
+        _log(R, False, out)
+        return out
+
+    rng = np.random.default_rng(int(angle * 1e3))
+    for _ in range(20):
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        R = cv2.Rodrigues(axis * angle)[0]
+        w = rotation_log(R)
+        if angle < np.pi - 1e-3:
+            assert np.allclose(w, axis * angle, rtol=1e-9, atol=1e-15)
+        else:  # a half turn's axis has two signs
+            assert min(np.abs(w - axis * angle).max(), np.abs(w + axis * angle).max()) < 1e-7
+        assert np.allclose(cv2.Rodrigues(w)[0], R, atol=1e-12)
+        if 0.03 <= angle <= 3.0:  # (OpenCV's acos is less exact for smaller angles)
+            assert np.allclose(w, cv2.Rodrigues(R)[0].ravel(), rtol=1e-10, atol=1e-15)
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, rng.normal(size=3)
+        omega, v = step_rate(T, 0.05)
+        assert np.allclose(omega, rotation_log(R.T) / 0.05, rtol=1e-12, atol=1e-15)
+        assert np.array_equal(v, -T[:3, 3] / 0.05)
+        if angle < np.pi - 1e-3:
+            assert np.allclose(omega, -axis * angle / 0.05, rtol=1e-9, atol=1e-13)
+        half = scaled_step(T, 0.5)
+        assert np.allclose(half[:3, :3] @ half[:3, :3], R, atol=1e-12)
+        assert np.array_equal(half[:3, 3], T[:3, 3] * 0.5) and np.array_equal(half[3], [0, 0, 0, 1])
+        if 0.03 <= angle <= 3.0:
+            assert np.allclose(half[:3, :3], cv2.Rodrigues(cv2.Rodrigues(R)[0] * 0.5)[0], atol=1e-14)
