@@ -23,6 +23,7 @@ eighth and eleventh passes).
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -36,6 +37,7 @@ __all__ = [
     "depth_at",
     "flow_hypotheses",
     "flow_refit",
+    "fuse_points",
     "invert_rigid",
     "project",
     "reproj_err2",
@@ -90,6 +92,22 @@ def transform(X: Any, T: Any) -> F64:
         out[i, 1] = _xform(X, T, i, 1)
         out[i, 2] = _xform(X, T, i, 2)
     return out
+
+
+@njit(cache=True)
+def fuse_points(X: Any, w: Any, idx: Any, X_cur: Any, T_ref_cur: Any) -> None:
+    """Fuse measurements ``X_cur`` (M, 3, current camera) of the points ``idx`` of ``X`` (N, 3,
+    reference frame, fusion weights ``w``) in place: each moved by ``T_ref_cur``, weighted by the
+    inverse variance ``1 / max(z, 1e-3)^4`` of its current depth, averaged with the point, the
+    weights summed (``estimation.frontend.FrontEnd.fuse``'s numpy steps, the same bits)."""
+    for k in range(idx.shape[0]):
+        i = idx[k]
+        w_new = 1.0 / math.pow(max(X_cur[k, 2], 1e-3), 4.0)
+        w_old = w[i]
+        wsum = w_old + w_new
+        for j in range(3):
+            X[i, j] = (X[i, j] * w_old + _xform(X_cur, T_ref_cur, k, j) * w_new) / wsum
+        w[i] = wsum
 
 
 @njit(cache=True)

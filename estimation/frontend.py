@@ -16,6 +16,7 @@ from typing import NamedTuple
 import numpy as np
 import numpy.typing as npt
 
+from estimation._kernels import fuse_points
 from estimation.camera_geometry import CameraGeometry, depth_weight
 from estimation.exposure import Integral, exposure_gain, integral, match_exposure
 from estimation.features import DescriptorExtractor, Features, GridDetector, occupied_cells
@@ -284,13 +285,10 @@ class FrontEnd:
         """Fuse current-frame 3D measurements of keyframe points into ``kf_X`` (inverse variance)."""
         if not len(gidx):
             return
-        T_kf_cur = invert(T_cur_kf)
-        X_new = X_cur @ T_kf_cur[:3, :3].T + T_kf_cur[:3, 3]
-        w_new = depth_weight(X_cur[:, 2])
-        w_old = self.kf_w[gidx]
-        wsum = w_old + w_new
-        self.kf_X[gidx] = (self.kf_X[gidx] * w_old[:, None] + X_new * w_new[:, None]) / wsum[:, None]
-        self.kf_w[gidx] = wsum
+        if not (self.kf_X.flags.c_contiguous and self.kf_w.flags.c_contiguous):  # (updated in place)
+            self.kf_X, self.kf_w = np.ascontiguousarray(self.kf_X), np.ascontiguousarray(self.kf_w)
+        # (depth_weight's inverse variance, one compiled pass)
+        fuse_points(self.kf_X, self.kf_w, gidx, np.ascontiguousarray(X_cur, dtype=np.float64), invert(T_cur_kf))
 
     def _keyframe_orb(self) -> tuple[Features, F64, Bool]:
         """ORB features of the keyframe with their 3D points (computed on first need)."""

@@ -90,7 +90,7 @@ def invert(T: F64) -> F64:
 
 def rotation_angle_rad(R: F64) -> float:
     """Angle of a rotation matrix, radians in [0, pi]."""
-    c = (float(np.trace(R)) - 1.0) * 0.5
+    c = (float(R[0, 0]) + float(R[1, 1]) + float(R[2, 2]) - 1.0) * 0.5  # (np.trace's sum, in its order)
     return math.acos(min(1.0, max(-1.0, c)))
 
 

@@ -54,8 +54,8 @@ class PoseTrack:
     def plausible(self, T_cur_prev: F64, dt_s: float) -> bool:
         """The step is within the speed and turn-rate limits."""
         dt = max(dt_s, 1e-3)
-        t = T_cur_prev[:3, 3].copy()  # as np.linalg.norm: a contiguous copy, sqrt of its dot
-        speed = math.sqrt(float(t.dot(t))) / dt
+        x, y, z = float(T_cur_prev[0, 3]), float(T_cur_prev[1, 3]), float(T_cur_prev[2, 3])
+        speed = math.sqrt(x * x + y * y + z * z) / dt
         rate = rotation_angle_rad(T_cur_prev[:3, :3]) / dt
         return speed <= self.max_speed_m_s and rate <= self.max_rate_rad_s
 

@@ -600,3 +600,27 @@ def test_rotation_log_and_the_step_helpers_agree_with_rodrigues(angle: float) ->
         assert np.array_equal(half[:3, 3], T[:3, 3] * 0.5) and np.array_equal(half[3], [0, 0, 0, 1])
         if 0.03 <= angle <= 3.0:
             assert np.allclose(half[:3, :3], cv2.Rodrigues(cv2.Rodrigues(R)[0] * 0.5)[0], atol=1e-14)
+
+
+@pytest.mark.parametrize("n", [1, 5, 200])
+def test_fuse_points_equals_the_numpy_steps(n: int) -> None:
+    rng = np.random.default_rng(40 + n)
+    X = _points(rng, n + 30)
+    w = rng.uniform(0.1, 5.0, n + 30)
+    idx = np.sort(rng.choice(n + 30, n, replace=False))
+    X_cur = _points(rng, n)
+    X_cur[0, 2] = 1e-4  # below the 1e-3 m floor of the weight
+    T_ref_cur = _pose(rng)
+    # FrontEnd.fuse as numpy wrote it (depth_weight: 1 / max(z, 1e-3) ** 4)
+    X_new = X_cur @ T_ref_cur[:3, :3].T + T_ref_cur[:3, 3]
+    w_new = 1.0 / np.maximum(X_cur[:, 2], 1e-3) ** 4
+    wsum = w[idx] + w_new
+    X_ref, w_ref = X.copy(), w.copy()
+    X_ref[idx] = (X[idx] * w[idx][:, None] + X_new * w_new[:, None]) / wsum[:, None]
+    w_ref[idx] = wsum
+    _kernels.fuse_points(X, w, idx, X_cur, T_ref_cur)
+    assert same(X, X_ref) and same(w, w_ref)
+    others = np.setdiff1d(np.arange(n + 30), idx)
+    assert np.array_equal(X[others], X_ref[others])
+    # a near measurement (z floored at 1e-3 m) outweighs the point; the others average
+    assert np.allclose(X[idx[0]], X_new[0]) and (n == 1 or not np.allclose(X[idx[1:]], X_new[1:]))
