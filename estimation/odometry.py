@@ -10,6 +10,7 @@ import logging
 import math
 from collections import Counter
 from collections.abc import Callable
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -257,6 +258,13 @@ class VisualOdometry:
             guess_inliers,
         )
 
+    def _at_rate(self, t: Tracks, T_cur_kf: F64, rate: CameraRate, inliers: int) -> Tracks:
+        """The same tracks for a second measurement from the motion ``T_cur_kf`` measured with
+        ``inliers`` of them: their current pixels moved to the stamp with the camera's ``rate``."""
+        z_cur = t.X_kf @ T_cur_kf[2, :3] + T_cur_kf[2, 3]
+        und_cur = self.geo.at_stamp(t.und_lens_cur, t.px_cur, rate, z_cur)
+        return replace(t, und_cur=und_cur, guess=T_cur_kf, has_prior=True, rate=rate, guess_inliers=inliers)
+
     def _measure(
         self,
         idx: npt.NDArray[np.intp],
@@ -275,22 +283,25 @@ class VisualOdometry:
         assert self._estimator is not None
         shutter = self.geo.shutter
         und_lens = self.geo.undistort(px[idx])  # once: both measurements move it to the stamp
-        m = self._estimator.estimate(
-            self._tracks(idx, px, und_lens, T_pred_cur_kf, has_prior, rate, gray, right_gray, depth_m)
-        )
+        tracks = self._tracks(idx, px, und_lens, T_pred_cur_kf, has_prior, rate, gray, right_gray, depth_m)
+        m = self._estimator.estimate(tracks)
         if shutter is not None and m.ok:
+            reuse = True
             rate_m = CameraRate.from_step(m.T_cur_ref @ invert(self.T_prev_kf), dt_s)
             if self.front.kf_rate is None:
                 # The first keyframe was made before any motion: it gets this step's rate.
                 self.front.set_keyframe_rate(rate_m)
                 rate = None
+                reuse = False  # (its points moved: gathered again)
             if rate is None or shutter.max_shift_px(rate_m.minus(rate)) > _RATE_REDO_PX:
                 meas = self.polisher.meas
                 # From the first measurement, whose outliers stay outliers: the prior check needs
                 # its share of inliers, not the options' (else it falls to RANSAC again).
                 n_inl = int(np.count_nonzero(m.inliers))
                 m2 = self._estimator.estimate(
-                    self._tracks(idx, px, und_lens, m.T_cur_ref, True, rate_m, gray, right_gray, depth_m, n_inl)
+                    self._at_rate(tracks, m.T_cur_ref, rate_m, n_inl)
+                    if reuse
+                    else self._tracks(idx, px, und_lens, m.T_cur_ref, True, rate_m, gray, right_gray, depth_m, n_inl)
                 )
                 if m2.ok:
                     m = m2
