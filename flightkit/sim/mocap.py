@@ -43,7 +43,7 @@ from scipy.spatial.transform import Rotation
 from flightkit.bus.keys import Keys
 from flightkit.bus.pubsub import STAMP_DEVICE
 from flightkit.bus.streams import PosePublisher
-from flightkit.clock import Clock
+from flightkit.clock import Clock, sleep_until
 from flightkit.errors import MocapError
 from flightkit.frames import MOCAP_FRAME_ID, Transform, WorldFrames
 from flightkit.lifetime import Running
@@ -227,7 +227,9 @@ class SimMocapSystem(Running):
             now = clock.monotonic_s()
             if next_s < now - 5 * period:  # fell far behind (machine busy): skip, keep the rate
                 next_s = now
-            clock.sleep_blocking(max(0.0, next_s - now))
+            # Until the frame's absolute time: a duration from ``now`` would overshoot by a tick when
+            # a lock-step clock advances between that read and the sleep (the frame never comes).
+            sleep_until(clock, next_s, self._stop)
 
     # ------------------------------------------------------------------ lifetime
 

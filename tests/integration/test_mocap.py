@@ -166,6 +166,42 @@ def test_sim_publisher_sends_the_mocap_frame_and_bus_source_maps_it_to_the_world
         a.close()  # type: ignore[attr-defined]
 
 
+def test_sim_mocap_takes_the_next_frame_when_lockstep_time_moves_before_its_sleep() -> None:
+    # The test thread's advance lands between the sampler's read of the time and its sleep (a
+    # race a busy CI machine hit once): the frame due at the new time must still be taken, without
+    # a further advance (a lock-step loop waits for it before advancing).
+    period = 1.0 / 120.0
+    sampler_reads: list[float] = []
+
+    class RacingClock(LockstepClock):
+        fired = False
+
+        def monotonic_s(self) -> float:
+            t = super().monotonic_s()
+            if threading.current_thread() is not threading.main_thread() and system.frames_published == 2:
+                sampler_reads.append(t)
+                if not self.fired:  # the second frame is out: the test's advance comes now
+                    self.fired = True
+                    self.advance(period)
+            return t
+
+    clock = RacingClock()
+    system = SimMocapSystem(clock, {"uav1": lambda _t: T_WORLD_UAV}, T_world_mocap=T_WORLD_MOCAP, rate_hz=120.0)
+    system.start()
+    try:
+        deadline = time.monotonic() + 5.0
+        while system.frames_published < 1 and time.monotonic() < deadline:
+            time.sleep(0.001)
+        clock.advance(period)  # frame 2 at one period; the clock then moves on to two by itself
+        while system.frames_published < 3 and time.monotonic() < deadline:
+            time.sleep(0.001)
+        assert clock.fired and sampler_reads[0] == pytest.approx(period)  # the race did happen
+        assert system.frames_published == 3, "the frame due at two periods was not taken"
+        assert clock.monotonic_s() == pytest.approx(2 * period)
+    finally:
+        system.stop()
+
+
 def test_sim_mocap_noise_is_seeded_and_has_the_configured_spread() -> None:
     clock = LockstepClock()
     kw = dict(T_world_mocap=T_WORLD_MOCAP, rate_hz=100.0, noise_m=0.01, noise_rad=0.0, seed=3)
