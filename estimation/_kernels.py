@@ -23,7 +23,6 @@ eighth and eleventh passes).
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import numpy as np
@@ -95,18 +94,17 @@ def transform(X: Any, T: Any) -> F64:
 
 
 @njit(cache=True)
-def fuse_points(X: Any, w: Any, idx: Any, X_cur: Any, T_ref_cur: Any) -> None:
-    """Fuse measurements ``X_cur`` (M, 3, current camera) of the points ``idx`` of ``X`` (N, 3,
-    reference frame, fusion weights ``w``) in place: each moved by ``T_ref_cur``, weighted by the
-    inverse variance ``1 / max(z, 1e-3)^4`` of its current depth, averaged with the point, the
-    weights summed (``estimation.frontend.FrontEnd.fuse``'s numpy steps, the same bits)."""
+def fuse_points(X: Any, w: Any, idx: Any, X_cur: Any, w_cur: Any, T_ref_cur: Any) -> None:
+    """Fuse measurements ``X_cur`` (M, 3, current camera; weights ``w_cur``) of the points ``idx`` of
+    ``X`` (N, 3, reference frame, fusion weights ``w``) in place: each moved by ``T_ref_cur`` and
+    averaged with the point by weight, the weights summed (``estimation.frontend.FrontEnd.fuse``'s
+    numpy steps, the same bits)."""
     for k in range(idx.shape[0]):
         i = idx[k]
-        w_new = 1.0 / math.pow(max(X_cur[k, 2], 1e-3), 4.0)
         w_old = w[i]
-        wsum = w_old + w_new
+        wsum = w_old + w_cur[k]
         for j in range(3):
-            X[i, j] = (X[i, j] * w_old + _xform(X_cur, T_ref_cur, k, j) * w_new) / wsum
+            X[i, j] = (X[i, j] * w_old + _xform(X_cur, T_ref_cur, k, j) * w_cur[k]) / wsum
         w[i] = wsum
 
 

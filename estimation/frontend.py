@@ -287,8 +287,8 @@ class FrontEnd:
             return
         if not (self.kf_X.flags.c_contiguous and self.kf_w.flags.c_contiguous):  # (updated in place)
             self.kf_X, self.kf_w = np.ascontiguousarray(self.kf_X), np.ascontiguousarray(self.kf_w)
-        # (depth_weight's inverse variance, one compiled pass)
-        fuse_points(self.kf_X, self.kf_w, gidx, np.ascontiguousarray(X_cur, dtype=np.float64), invert(T_cur_kf))
+        X_cur = np.ascontiguousarray(X_cur, dtype=np.float64)
+        fuse_points(self.kf_X, self.kf_w, gidx, X_cur, depth_weight(X_cur[:, 2]), invert(T_cur_kf))
 
     def _keyframe_orb(self) -> tuple[Features, F64, Bool]:
         """ORB features of the keyframe with their 3D points (computed on first need)."""

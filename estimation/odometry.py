@@ -229,16 +229,13 @@ class VisualOdometry:
         gray: npt.NDArray[np.uint8],
         right_gray: npt.NDArray[np.uint8] | None,
         depth_m: F32 | None,
-        guess_inliers: int | None = None,
     ) -> Tracks:
         """The tracked keyframe points ``idx`` (current pixels ``px[idx]``, ``und_lens`` undistorted)
-        for the estimator; their undistorted pixels at the frame's stamp with the camera's ``rate``
-        (a rolling shutter);
-        ``guess_inliers``: the inliers of the measured motion ``T_guess_cur_kf`` (``Tracks``)."""
+        for the estimator, with the predicted motion ``T_guess_cur_kf``; their undistorted pixels at
+        the frame's stamp with the camera's ``rate`` (a rolling shutter)."""
         front = self.front
         X_kf = front.kf_X[idx]
         px_cur = px[idx]
-        z_cur = X_kf @ T_guess_cur_kf[2, :3] + T_guess_cur_kf[2, 3] if rate is not None else None
         var_kf = disparity_variance(front.kf_w[idx], X_kf[:, 2]) if self.opts.point_uncertainty else None
         return Tracks(
             X_kf,
@@ -246,7 +243,7 @@ class VisualOdometry:
             front.kf_und_lens[idx],
             px_cur,
             und_lens,
-            self.geo.at_stamp(und_lens, px_cur, rate, z_cur),
+            self._at_stamp(X_kf, px_cur, und_lens, T_guess_cur_kf, rate),
             T_guess_cur_kf,
             has_prior,
             gray,
@@ -255,15 +252,19 @@ class VisualOdometry:
             var_kf,
             rate,
             front.kf_rate,
-            guess_inliers,
         )
 
     def _at_rate(self, t: Tracks, T_cur_kf: F64, rate: CameraRate, inliers: int) -> Tracks:
         """The same tracks for a second measurement from the motion ``T_cur_kf`` measured with
         ``inliers`` of them: their current pixels moved to the stamp with the camera's ``rate``."""
-        z_cur = t.X_kf @ T_cur_kf[2, :3] + T_cur_kf[2, 3]
-        und_cur = self.geo.at_stamp(t.und_lens_cur, t.px_cur, rate, z_cur)
+        und_cur = self._at_stamp(t.X_kf, t.px_cur, t.und_lens_cur, T_cur_kf, rate)
         return replace(t, und_cur=und_cur, guess=T_cur_kf, has_prior=True, rate=rate, guess_inliers=inliers)
+
+    def _at_stamp(self, X_kf: F64, px_cur: F32, und_lens: F64, T_cur_kf: F64, rate: CameraRate | None) -> F64:
+        """The tracks' undistorted current pixels moved to the frame's stamp with the camera's
+        ``rate``, at the depths their keyframe points have under ``T_cur_kf``."""
+        z_cur = X_kf @ T_cur_kf[2, :3] + T_cur_kf[2, 3] if rate is not None else None
+        return self.geo.at_stamp(und_lens, px_cur, rate, z_cur)
 
     def _measure(
         self,
@@ -286,23 +287,19 @@ class VisualOdometry:
         tracks = self._tracks(idx, px, und_lens, T_pred_cur_kf, has_prior, rate, gray, right_gray, depth_m)
         m = self._estimator.estimate(tracks)
         if shutter is not None and m.ok:
-            reuse = True
             rate_m = CameraRate.from_step(m.T_cur_ref @ invert(self.T_prev_kf), dt_s)
             if self.front.kf_rate is None:
-                # The first keyframe was made before any motion: it gets this step's rate.
+                # The first keyframe was made before any motion: it gets this step's rate (its
+                # points move, so the tracks are gathered again).
                 self.front.set_keyframe_rate(rate_m)
                 rate = None
-                reuse = False  # (its points moved: gathered again)
+                tracks = self._tracks(idx, px, und_lens, T_pred_cur_kf, has_prior, rate, gray, right_gray, depth_m)
             if rate is None or shutter.max_shift_px(rate_m.minus(rate)) > _RATE_REDO_PX:
                 meas = self.polisher.meas
                 # From the first measurement, whose outliers stay outliers: the prior check needs
                 # its share of inliers, not the options' (else it falls to RANSAC again).
                 n_inl = int(np.count_nonzero(m.inliers))
-                m2 = self._estimator.estimate(
-                    self._at_rate(tracks, m.T_cur_ref, rate_m, n_inl)
-                    if reuse
-                    else self._tracks(idx, px, und_lens, m.T_cur_ref, True, rate_m, gray, right_gray, depth_m, n_inl)
-                )
+                m2 = self._estimator.estimate(self._at_rate(tracks, m.T_cur_ref, rate_m, n_inl))
                 if m2.ok:
                     m = m2
                 else:

@@ -17,6 +17,7 @@ from scipy.spatial.transform import Rotation
 
 from estimation import _kernels, _pose_kernel
 from estimation._grid_kernel import count_cells
+from estimation.camera_geometry import depth_weight
 from estimation.features import occupied_cells
 from estimation.motion import invert
 from estimation.pnp import refine_pose
@@ -618,7 +619,7 @@ def test_fuse_points_equals_the_numpy_steps(n: int) -> None:
     X_ref, w_ref = X.copy(), w.copy()
     X_ref[idx] = (X[idx] * w[idx][:, None] + X_new * w_new[:, None]) / wsum[:, None]
     w_ref[idx] = wsum
-    _kernels.fuse_points(X, w, idx, X_cur, T_ref_cur)
+    _kernels.fuse_points(X, w, idx, X_cur, depth_weight(X_cur[:, 2]), T_ref_cur)
     assert same(X, X_ref) and same(w, w_ref)
     others = np.setdiff1d(np.arange(n + 30), idx)
     assert np.array_equal(X[others], X_ref[others])
